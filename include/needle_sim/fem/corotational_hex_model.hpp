@@ -1,0 +1,70 @@
+#pragma once
+// Corotational trilinear hexahedra (DESIGN.md §2 "Tissue").
+//
+// Per element a rotation R is extracted from the deformation gradient at the centroid;
+// the element then behaves linearly in its rotated frame:
+//   internal force   f_e = -R K0 (R^T x_e - X_e)
+//   tangent          K_e =  R K0 R^T          (no geometric stiffness term)
+// K0 is computed once at rest by 2x2x2 Gauss and shared between elements of identical
+// shape (a uniform grid stores a single 24x24 matrix).
+//
+// R is the rotation of the polar decomposition F = R U, found by the quaternion
+// iteration of Mueller et al. (2016), warm-started from the previous step's rotation.
+// It always returns a proper rotation, also for flat or inverted elements, where an
+// SVD-based polar decomposition needs explicit reflection handling.
+#include <Eigen/Geometry>
+#include <vector>
+
+#include "needle_sim/core/types.hpp"
+#include "needle_sim/fem/hex8.hpp"
+#include "needle_sim/fem/hex_mesh.hpp"
+#include "needle_sim/fem/material.hpp"
+
+namespace needle_sim {
+
+class CorotationalHexModel {
+ public:
+  CorotationalHexModel(const HexMesh& mesh, const LinearElasticMaterial& material);
+
+  const HexMesh& mesh() const { return mesh_; }
+  const LinearElasticMaterial& material() const { return material_; }
+  int numElements() const { return mesh_.numElements(); }
+  // Number of distinct element shapes, i.e. K0 matrices stored.
+  int numReferences() const { return static_cast<int>(refs_.size()); }
+  const hex8::ElementReference& reference(int e) const { return refs_[ref_of_[e]]; }
+
+  // Integral of N_a over the mesh, per node: the lumped mass is density times this.
+  const VecX& nodalVolume() const { return nodal_volume_; }
+
+  // Extracts every element's rotation from the current positions x (3n).
+  void updateRotations(const VecX& x);
+  const Mat3& rotation(int e) const { return rot_[e]; }
+  // Sets all rotations to the identity (the linear, small-displacement model).
+  void resetRotations();
+  // Elements whose deformation gradient at the centroid has det F <= 0 at the last update.
+  int invertedElements() const { return inverted_; }
+
+  // f += internal elastic force for positions x with the current rotations.
+  void addInternalForce(const VecX& x, VecX& f) const;
+  // out += s * K v, with K = sum_e R K0 R^T (matrix-free).
+  void addStiffnessProduct(const VecX& v, double s, VecX& out) const;
+  // Rotated element stiffness R K0 R^T of element e.
+  void elementStiffness(int e, hex8::Mat24& Ke) const;
+  // Elastic energy 1/2 sum_e u_e^T K0 u_e in the corotated frames.
+  double elasticEnergy(const VecX& x) const;
+
+ private:
+  // Local (corotated) displacement R^T x_e - X_e of element e.
+  Eigen::Matrix<double, 24, 1> localDisplacement(int e, const VecX& x) const;
+
+  const HexMesh& mesh_;
+  LinearElasticMaterial material_;
+  std::vector<hex8::ElementReference> refs_;
+  std::vector<int> ref_of_;
+  std::vector<Eigen::Quaterniond> quat_;
+  std::vector<Mat3> rot_;
+  VecX nodal_volume_;
+  int inverted_ = 0;
+};
+
+}  // namespace needle_sim

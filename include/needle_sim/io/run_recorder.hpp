@@ -1,0 +1,47 @@
+#pragma once
+// Records a run of a Simulation and writes its results:
+//   DIR/timeseries.csv  one row per step (step, t, dofs, step_ms, split timings, solver
+//                       counters, NAME_ux, NAME_uy, NAME_uz per probe)
+//   DIR/summary.json    scene, sizes, step-time statistics, solver statistics, final probes
+// The CSV is written to timeseries.partial.csv while running and renamed only on success;
+// a failed run leaves summary.json with "status": "numerical_failure" and the step, so
+// nothing half-done looks like a result.
+#include <fstream>
+#include <string>
+#include <vector>
+
+#include "needle_sim/sim/simulation.hpp"
+
+namespace needle_sim {
+
+struct Percentiles {
+  double median = 0, p95 = 0, max = 0, mean = 0;
+};
+Percentiles percentiles(std::vector<double> v);
+
+class RunRecorder {
+ public:
+  // Creates DIR if needed and removes results of an earlier run there.
+  RunRecorder(const Simulation& sim, const std::string& dir);
+  void recordStep(const StepStats& s, double step_ms);
+  // Finalises: success writes summary.json and renames the CSV.
+  void finish(double wall_s);
+  void fail(double wall_s, long step, const std::string& message);
+
+  const std::vector<double>& stepTimes() const { return step_ms_; }
+  std::string summaryPath() const { return dir_ + "/summary.json"; }
+  std::string timeseriesPath() const { return dir_ + "/timeseries.csv"; }
+
+ private:
+  void writeSummary(const std::string& status, double wall_s, long fail_step, const std::string& message);
+
+  const Simulation& sim_;
+  std::string dir_;
+  std::ofstream csv_;
+  std::vector<double> step_ms_, forces_ms_, assemble_ms_, factor_ms_, solve_ms_;
+  long linear_iterations_ = 0, factorizations_ = 0, newton_iterations_ = 0;
+  int max_linear_iterations_ = 0;
+  double max_linear_residual_ = 0;
+};
+
+}  // namespace needle_sim

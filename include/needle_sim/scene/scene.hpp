@@ -1,0 +1,87 @@
+#pragma once
+// The in-memory form of a scene file (SI units throughout). The loader
+// (scene_loader.hpp) fills it and guarantees every value is valid, so the rest of the
+// library can rely on it. Sections for the needle, interaction, adaptivity, immersed
+// geometry and targets are added here as those capabilities land.
+#include <array>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "needle_sim/core/types.hpp"
+#include "needle_sim/fem/material.hpp"
+#include "needle_sim/solver/system_solver.hpp"
+
+namespace needle_sim {
+
+struct BoxRegion {
+  Vec3 min = Vec3::Zero();
+  Vec3 max = Vec3::Zero();
+};
+
+// A region selecting grid nodes. Only boxes so far; spheres and surface patches follow.
+struct Region {
+  BoxRegion box;
+  bool contains(const Vec3& p, double tol) const {
+    return ((p - box.min).array() >= -tol).all() && ((p - box.max).array() <= tol).all();
+  }
+};
+
+struct DirichletCondition {
+  Region region;
+  Vec3 displacement = Vec3::Zero();
+  std::array<bool, 3> components{{true, true, true}};  // which of x, y, z are prescribed
+  std::string key;                                     // e.g. "tissue.dirichlet[0]", for messages
+};
+
+// Uniform traction (Pa) on the boundary faces lying in a region.
+struct TractionLoad {
+  Region region;
+  Vec3 traction = Vec3::Zero();
+  std::string key;
+};
+
+struct TissueGeometry {
+  enum class Kind { Box, Block } kind = Kind::Box;
+  BoxRegion box;                 // Kind::Box
+  std::array<Vec3, 8> corners{};  // Kind::Block, VTK hexahedron order
+};
+
+struct TissueScene {
+  TissueGeometry geometry;
+  Vec3i cells = Vec3i(1, 1, 1);
+  LinearElasticMaterial material;
+  Vec3 gravity = Vec3::Zero();     // m/s^2
+  Vec3 body_force = Vec3::Zero();  // N/m^3
+  std::vector<DirichletCondition> dirichlet;
+  std::vector<TractionLoad> tractions;
+};
+
+struct SolverScene {
+  enum class Mode { Dynamic, Static } mode = Mode::Dynamic;
+  double rayleigh_mass = 0.0;       // alpha in C = alpha M + beta K
+  double rayleigh_stiffness = 0.0;  // beta
+  double static_tolerance = 1e-8;   // relative residual of the Newton iteration
+  int static_max_iterations = 50;
+  LinearSolverSettings linear;
+};
+
+struct ProbeScene {
+  std::string name;
+  Vec3 point = Vec3::Zero();
+};
+
+struct Scene {
+  std::string file;  // where it was loaded from ("" for scenes built in code)
+  std::string name;
+  std::string description;
+  double dt = 0.01;
+  double duration = 1.0;
+  SolverScene solver;
+  TissueScene tissue;
+  std::vector<ProbeScene> probes;
+
+  long numSteps() const;
+};
+
+}  // namespace needle_sim

@@ -1,0 +1,48 @@
+#pragma once
+// A scene brought to life: builds the bodies from a validated Scene, embeds the probes,
+// and advances time step by step. The command-line tool and (later) the ROS node are
+// thin drivers around this class.
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "needle_sim/fem/embedded_point.hpp"
+#include "needle_sim/scene/scene.hpp"
+#include "needle_sim/sim/tissue_body.hpp"
+
+namespace needle_sim {
+
+HexMesh buildTissueMesh(const TissueScene& tissue);
+
+class Simulation {
+ public:
+  // Throws InputError for scene content that only shows once the mesh exists (a probe
+  // outside the tissue, a region selecting no node).
+  explicit Simulation(const Scene& scene);
+
+  // Advances one time step (dynamic) or one quasi-static load step (static). Throws
+  // NumericalError carrying the step index on NaN/Inf, divergence or solver failure.
+  const StepStats& step();
+
+  const Scene& scene() const { return scene_; }
+  long stepIndex() const { return step_; }  // steps done
+  double time() const { return step_ * scene_.dt; }
+  const TissueBody& tissue() const { return *tissue_; }
+  const StepStats& lastStats() const { return last_; }
+
+  int numProbes() const { return static_cast<int>(probes_.size()); }
+  const std::string& probeName(int i) const { return scene_.probes[i].name; }
+  Vec3 probeDisplacement(int i) const;
+
+ private:
+  void checkState() const;
+
+  Scene scene_;
+  std::unique_ptr<TissueBody> tissue_;
+  std::vector<EmbeddedPoint> probes_;
+  long step_ = 0;
+  StepStats last_;
+  double diag_ = 1;
+};
+
+}  // namespace needle_sim

@@ -1,0 +1,76 @@
+#pragma once
+// The deformable tissue as a body of the simulation: mesh, corotational model, boundary
+// conditions, loads, state (x, v) and its linear solver.
+//
+// Dynamic step (linearised implicit Euler, Baraff & Witkin 1998), with K = -df/dx and
+// Rayleigh damping C = alpha M + beta K:
+//   (M + h C + h^2 K) dv = h ( f(x) + f_ext - h K v - C v ),   v += dv,   x += h v.
+// Static solve: Newton on the corotational forces, K(x) dx = f(x) + f_ext, to equilibrium.
+// Prescribed DOFs keep their position and zero velocity; they are not unknowns.
+#include <memory>
+#include <vector>
+
+#include "needle_sim/core/types.hpp"
+#include "needle_sim/fem/corotational_hex_model.hpp"
+#include "needle_sim/fem/hex_mesh.hpp"
+#include "needle_sim/scene/scene.hpp"
+#include "needle_sim/solver/dof_map.hpp"
+#include "needle_sim/solver/system_solver.hpp"
+
+namespace needle_sim {
+
+struct StepStats {
+  double forces_ms = 0;    // rotations, internal forces, right-hand side
+  double assemble_ms = 0;  // sparse matrix assembly (only when refactorising)
+  double factor_ms = 0;    // numeric factorisation
+  double solve_ms = 0;     // CG iterations (or the direct solve)
+  int linear_iterations = 0;
+  int factorizations = 0;
+  double linear_residual = 0;
+  int newton_iterations = 0;     // static mode
+  double newton_residual = 0;    // static mode, relative
+  double total_ms() const { return forces_ms + assemble_ms + factor_ms + solve_ms; }
+};
+
+class TissueBody {
+ public:
+  // Throws InputError (naming the scene key) when a Dirichlet or traction region selects
+  // nothing, and std::invalid_argument for a degenerate mesh.
+  TissueBody(HexMesh mesh, const TissueScene& tissue, const SolverScene& solver, const std::string& file = "");
+
+  const HexMesh& mesh() const { return *mesh_; }
+  const CorotationalHexModel& model() const { return *model_; }
+  const DofMap& dofs() const { return dofs_; }
+  const VecX& positions() const { return x_; }
+  const VecX& velocities() const { return v_; }
+  VecX displacements() const { return x_ - rest_; }
+  const VecX& externalForce() const { return f_ext_; }
+  const VecX& lumpedMass() const { return mass_; }  // per DOF (3n)
+
+  StepStats stepDynamic(double h);
+  // Newton to equilibrium; throws NumericalError when it does not converge.
+  StepStats solveStatic();
+
+  double kineticEnergy() const;
+  double elasticEnergy() const { return model_->elasticEnergy(x_); }
+  // Work potential of the constant external loads, -f_ext . u.
+  double loadPotential() const { return -f_ext_.dot(x_ - rest_); }
+
+  // Sets positions/velocities (tests, restarts); prescribed DOFs are kept.
+  void setState(const VecX& x, const VecX& v);
+  // Moves the prescribed DOFs to the values in x (other entries ignored).
+  void setPrescribedPositions(const VecX& x);
+
+ private:
+  void accumulate(StepStats& s, const LinearSolveStats& l) const;
+
+  std::unique_ptr<HexMesh> mesh_;
+  std::unique_ptr<CorotationalHexModel> model_;
+  SolverScene settings_;
+  DofMap dofs_;
+  std::unique_ptr<SystemSolver> solver_;
+  VecX rest_, x_, v_, f_ext_, mass_, mass_free_;
+  VecX dv_free_;  // last increment: warm start for CG
+};
+
+}  // namespace needle_sim

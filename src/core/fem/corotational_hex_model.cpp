@@ -1,0 +1,157 @@
+#include "needle_sim/fem/corotational_hex_model.hpp"
+
+#include <algorithm>
+#include <cassert>
+#include <cmath>
+#include <Eigen/Cholesky>
+#include <map>
+#include <stdexcept>
+#include <string>
+
+namespace needle_sim {
+
+namespace {
+
+// Key identifying an element's rest shape up to translation, quantised to 1e-10 of the
+// mesh size, so that identical grid cells share one reference.
+std::array<long long, 21> shapeKey(const Eigen::Matrix<double, 8, 3>& X, double quantum) {
+  std::array<long long, 21> k{};
+  int c = 0;
+  for (int a = 1; a < 8; ++a)
+    for (int d = 0; d < 3; ++d) k[c++] = std::llround((X(a, d) - X(0, d)) / quantum);
+  return k;
+}
+
+// Rotation R maximising tr(R^T A) (the rotation of the polar decomposition A = R U when
+// det A > 0), updating q in place. Each iteration turns R by omega in the world frame.
+// Mueller et al. (2016) take omega = g / |tr(S)| with the gradient g = sum_i r_i x a_i and
+// S = sym(A R^T); near the solution this converges only linearly (factor 1/3 for A ~ I).
+// We take the Newton step omega = (tr(S) I - S)^-1 g when that Hessian is positive
+// definite (quadratic convergence), and Mueller's step otherwise (inverted or flat
+// elements), which always keeps R a proper rotation.
+void extractRotation(const Mat3& A, Eigen::Quaterniond& q) {
+  for (int it = 0; it < 40; ++it) {
+    const Mat3 R = q.toRotationMatrix();
+    const Vec3 g = R.col(0).cross(A.col(0)) + R.col(1).cross(A.col(1)) + R.col(2).cross(A.col(2));
+    const Mat3 B = A * R.transpose();
+    const Mat3 S = 0.5 * (B + B.transpose());
+    const double tr = S.trace();
+    Vec3 omega;
+    const Mat3 H = tr * Mat3::Identity() - S;
+    Eigen::LLT<Mat3> llt(H);
+    if (tr > 0 && llt.info() == Eigen::Success && H.diagonal().minCoeff() > 1e-6 * tr)
+      omega = llt.solve(g);
+    else
+      omega = g / (std::abs(tr) + 1e-9);
+    const double w = omega.norm();
+    if (!(w >= 1e-15)) break;  // converged (also stops on NaN)
+    q = Eigen::Quaterniond(Eigen::AngleAxisd(std::min(w, 1.0), omega / w)) * q;
+    q.normalize();
+    if (w < 1e-9) break;  // a Newton step this small has converged to round-off
+  }
+}
+
+}  // namespace
+
+CorotationalHexModel::CorotationalHexModel(const HexMesh& mesh, const LinearElasticMaterial& material)
+    : mesh_(mesh), material_(material) {
+  std::map<std::array<long long, 21>, int> index;
+  ref_of_.resize(mesh.numElements());
+  nodal_volume_ = VecX::Zero(mesh.numNodes());
+  const double quantum = 1e-10 * std::max((mesh.boundsMax() - mesh.boundsMin()).norm(), 1e-300);
+  for (int e = 0; e < mesh.numElements(); ++e) {
+    const auto X = mesh.elementCorners(e);
+    const auto key = shapeKey(X, quantum);
+    auto it = index.find(key);
+    if (it == index.end()) {
+      try {
+        refs_.push_back(hex8::computeReference(X, material));
+      } catch (const std::invalid_argument&) {
+        throw std::invalid_argument("element " + std::to_string(e) + " is degenerate or inverted at rest");
+      }
+      it = index.emplace(key, static_cast<int>(refs_.size()) - 1).first;
+    }
+    ref_of_[e] = it->second;
+    for (int a = 0; a < 8; ++a) nodal_volume_[mesh.element(e)[a]] += refs_[it->second].node_volume[a];
+  }
+  quat_.assign(mesh.numElements(), Eigen::Quaterniond::Identity());
+  rot_.assign(mesh.numElements(), Mat3::Identity());
+}
+
+void CorotationalHexModel::resetRotations() {
+  quat_.assign(mesh_.numElements(), Eigen::Quaterniond::Identity());
+  rot_.assign(mesh_.numElements(), Mat3::Identity());
+  inverted_ = 0;
+}
+
+void CorotationalHexModel::updateRotations(const VecX& x) {
+  assert(x.size() == mesh_.numDofs());
+  int inverted = 0;
+  for (int e = 0; e < mesh_.numElements(); ++e) {
+    const auto& el = mesh_.element(e);
+    const auto& G = refs_[ref_of_[e]].grad_centroid;
+    Mat3 F = Mat3::Zero();
+    for (int a = 0; a < 8; ++a) F.noalias() += node3(x, el[a]) * G.row(a);
+    if (!(F.determinant() > 0)) ++inverted;
+    extractRotation(F, quat_[e]);
+    rot_[e] = quat_[e].toRotationMatrix();
+  }
+  inverted_ = inverted;
+}
+
+Eigen::Matrix<double, 24, 1> CorotationalHexModel::localDisplacement(int e, const VecX& x) const {
+  // Relative to the element centroid: identical in exact arithmetic (K0 ignores
+  // translations) but free of the cancellation of R^T x - X when |x| >> |u|.
+  const auto& el = mesh_.element(e);
+  const Mat3& R = rot_[e];
+  Vec3 xc = Vec3::Zero(), Xc = Vec3::Zero();
+  for (int a = 0; a < 8; ++a) {
+    xc += node3(x, el[a]);
+    Xc += mesh_.node(el[a]);
+  }
+  xc /= 8;
+  Xc /= 8;
+  Eigen::Matrix<double, 24, 1> u;
+  for (int a = 0; a < 8; ++a)
+    u.segment<3>(3 * a).noalias() = R.transpose() * (node3(x, el[a]) - xc) - (mesh_.node(el[a]) - Xc);
+  return u;
+}
+
+void CorotationalHexModel::addInternalForce(const VecX& x, VecX& f) const {
+  for (int e = 0; e < mesh_.numElements(); ++e) {
+    const Eigen::Matrix<double, 24, 1> fl = refs_[ref_of_[e]].K0 * localDisplacement(e, x);
+    const auto& el = mesh_.element(e);
+    const Mat3& R = rot_[e];
+    for (int a = 0; a < 8; ++a) node3(f, el[a]).noalias() -= R * fl.segment<3>(3 * a);
+  }
+}
+
+void CorotationalHexModel::addStiffnessProduct(const VecX& v, double s, VecX& out) const {
+  Eigen::Matrix<double, 24, 1> vl;
+  for (int e = 0; e < mesh_.numElements(); ++e) {
+    const auto& el = mesh_.element(e);
+    const Mat3& R = rot_[e];
+    for (int a = 0; a < 8; ++a) vl.segment<3>(3 * a).noalias() = R.transpose() * node3(v, el[a]);
+    const Eigen::Matrix<double, 24, 1> w = refs_[ref_of_[e]].K0 * vl;
+    for (int a = 0; a < 8; ++a) node3(out, el[a]).noalias() += s * (R * w.segment<3>(3 * a));
+  }
+}
+
+void CorotationalHexModel::elementStiffness(int e, hex8::Mat24& Ke) const {
+  const auto& K0 = refs_[ref_of_[e]].K0;
+  const Mat3& R = rot_[e];
+  for (int a = 0; a < 8; ++a)
+    for (int b = 0; b < 8; ++b)
+      Ke.block<3, 3>(3 * a, 3 * b).noalias() = R * K0.block<3, 3>(3 * a, 3 * b) * R.transpose();
+}
+
+double CorotationalHexModel::elasticEnergy(const VecX& x) const {
+  double E = 0;
+  for (int e = 0; e < mesh_.numElements(); ++e) {
+    const auto u = localDisplacement(e, x);
+    E += 0.5 * u.dot(refs_[ref_of_[e]].K0 * u);
+  }
+  return E;
+}
+
+}  // namespace needle_sim

@@ -1,0 +1,53 @@
+#include "needle_sim/fem/embedded_point.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+namespace needle_sim {
+
+PointLocator::PointLocator(const HexMesh& mesh) : mesh_(mesh) {
+  lo_ = mesh.boundsMin();
+  const Vec3 ext = (mesh.boundsMax() - lo_).cwiseMax(1e-300);
+  // About one element per bin on average.
+  const double n = std::max(1, mesh.numElements());
+  const double vol = ext.prod();
+  const double h = std::cbrt(vol / n);
+  for (int d = 0; d < 3; ++d) dims_[d] = std::clamp(static_cast<int>(std::ceil(ext[d] / h)), 1, 512);
+  cell_ = ext.cwiseQuotient(dims_.cast<double>());
+  bins_.assign(static_cast<size_t>(dims_.prod()), {});
+  for (int e = 0; e < mesh.numElements(); ++e) {
+    const auto X = mesh.elementCorners(e);
+    const Vec3i a = binOf(X.colwise().minCoeff().transpose());
+    const Vec3i b = binOf(X.colwise().maxCoeff().transpose());
+    for (int k = a[2]; k <= b[2]; ++k)
+      for (int j = a[1]; j <= b[1]; ++j)
+        for (int i = a[0]; i <= b[0]; ++i) bins_[binIndex({i, j, k})].push_back(e);
+  }
+}
+
+Vec3i PointLocator::binOf(const Vec3& p) const {
+  Vec3i c;
+  for (int d = 0; d < 3; ++d)
+    c[d] = std::clamp(static_cast<int>(std::floor((p[d] - lo_[d]) / cell_[d])), 0, dims_[d] - 1);
+  return c;
+}
+
+bool PointLocator::locate(const Vec3& p, EmbeddedPoint& out) const {
+  const Vec3 tol = 1e-9 * cell_;
+  if (((p - lo_).array() < -tol.array()).any() ||
+      ((p - mesh_.boundsMax()).array() > tol.array()).any())
+    return false;
+  for (int e : bins_[binIndex(binOf(p))]) {
+    Vec3 xi;
+    if (!hex8::inverseMap(mesh_.elementCorners(e), p, xi)) continue;
+    if (xi.cwiseAbs().maxCoeff() > 1 + 1e-9) continue;
+    out.rest = p;
+    out.element = e;
+    out.xi = xi.cwiseMax(-1.0).cwiseMin(1.0);
+    out.weights = hex8::shape(out.xi);
+    return true;
+  }
+  return false;
+}
+
+}  // namespace needle_sim

@@ -1,0 +1,134 @@
+#include "needle_sim/io/run_recorder.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <iomanip>
+#include <nlohmann/json.hpp>
+#include <numeric>
+#include <stdexcept>
+
+namespace needle_sim {
+
+namespace fs = std::filesystem;
+
+Percentiles percentiles(std::vector<double> v) {
+  Percentiles p;
+  if (v.empty()) return p;
+  std::sort(v.begin(), v.end());
+  auto at = [&](double q) {
+    const double idx = q * (v.size() - 1);
+    const size_t lo = static_cast<size_t>(std::floor(idx)), hi = static_cast<size_t>(std::ceil(idx));
+    return v[lo] + (idx - lo) * (v[hi] - v[lo]);
+  };
+  p.median = at(0.5);
+  p.p95 = at(0.95);
+  p.max = v.back();
+  p.mean = std::accumulate(v.begin(), v.end(), 0.0) / v.size();
+  return p;
+}
+
+RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir) : sim_(sim), dir_(dir) {
+  std::error_code ec;
+  fs::create_directories(dir_, ec);
+  if (ec) throw std::runtime_error("cannot create output directory '" + dir_ + "': " + ec.message());
+  for (const char* f : {"summary.json", "timeseries.csv", "timeseries.partial.csv"}) fs::remove(fs::path(dir_) / f, ec);
+  csv_.open(fs::path(dir_) / "timeseries.partial.csv");
+  if (!csv_) throw std::runtime_error("cannot write to output directory '" + dir_ + "'");
+  csv_ << "step,t,dofs,step_ms,forces_ms,assemble_ms,factor_ms,solve_ms,linear_iterations,factorizations,"
+          "newton_iterations,kinetic_energy";
+  for (int i = 0; i < sim.numProbes(); ++i) {
+    const auto& n = sim.probeName(i);
+    csv_ << ',' << n << "_ux," << n << "_uy," << n << "_uz";
+  }
+  csv_ << '\n' << std::setprecision(10);
+}
+
+void RunRecorder::recordStep(const StepStats& s, double ms) {
+  step_ms_.push_back(ms);
+  forces_ms_.push_back(s.forces_ms);
+  assemble_ms_.push_back(s.assemble_ms);
+  factor_ms_.push_back(s.factor_ms);
+  solve_ms_.push_back(s.solve_ms);
+  linear_iterations_ += s.linear_iterations;
+  factorizations_ += s.factorizations;
+  newton_iterations_ += s.newton_iterations;
+  max_linear_iterations_ = std::max(max_linear_iterations_, s.linear_iterations);
+  max_linear_residual_ = std::max(max_linear_residual_, s.linear_residual);
+  csv_ << sim_.stepIndex() << ',' << sim_.time() << ',' << sim_.tissue().mesh().numDofs() << ',' << ms << ','
+       << s.forces_ms << ',' << s.assemble_ms << ',' << s.factor_ms << ',' << s.solve_ms << ','
+       << s.linear_iterations << ',' << s.factorizations << ',' << s.newton_iterations << ','
+       << sim_.tissue().kineticEnergy();
+  for (int i = 0; i < sim_.numProbes(); ++i) {
+    const Vec3 u = sim_.probeDisplacement(i);
+    csv_ << ',' << u[0] << ',' << u[1] << ',' << u[2];
+  }
+  csv_ << '\n';
+}
+
+void RunRecorder::writeSummary(const std::string& status, double wall_s, long fail_step, const std::string& message) {
+  using nlohmann::json;
+  const auto& scene = sim_.scene();
+  const auto& body = sim_.tissue();
+  json j;
+  j["status"] = status;
+  if (status != "ok") {
+    j["failed_step"] = fail_step;
+    j["message"] = message;
+  }
+  j["scene"] = {{"name", scene.name}, {"file", scene.file}, {"description", scene.description}};
+  j["mode"] = scene.solver.mode == SolverScene::Mode::Dynamic ? "dynamic" : "static";
+  j["dofs"] = body.mesh().numDofs();
+  j["free_dofs"] = body.dofs().numFree();
+  j["nodes"] = body.mesh().numNodes();
+  j["elements"] = body.mesh().numElements();
+  j["steps"] = sim_.stepIndex();
+  j["dt"] = scene.dt;
+  j["time"] = sim_.time();
+  j["wall_time_s"] = wall_s;
+  auto pj = [](const Percentiles& p) {
+    return json{{"median", p.median}, {"p95", p.p95}, {"max", p.max}, {"mean", p.mean}};
+  };
+  j["step_ms"] = pj(percentiles(step_ms_));
+  j["split_ms"] = {{"forces", pj(percentiles(forces_ms_))},
+                   {"assemble", pj(percentiles(assemble_ms_))},
+                   {"factor", pj(percentiles(factor_ms_))},
+                   {"solve", pj(percentiles(solve_ms_))}};
+  const auto& ls = body.model();
+  (void)ls;
+  j["solver"] = {{"method", scene.solver.linear.method == LinearSolverSettings::Method::Pcg ? "pcg" : "direct"},
+                 {"linear_iterations_total", linear_iterations_},
+                 {"linear_iterations_max", max_linear_iterations_},
+                 {"linear_residual_max", max_linear_residual_},
+                 {"factorizations", factorizations_},
+                 {"newton_iterations_total", newton_iterations_},
+                 {"inverted_elements", body.model().invertedElements()}};
+  j["energy"] = {{"kinetic", body.kineticEnergy()}, {"elastic", body.elasticEnergy()}};
+  json probes = json::object();
+  for (int i = 0; i < sim_.numProbes(); ++i) {
+    const Vec3 u = sim_.probeDisplacement(i);
+    const Vec3 p = scene.probes[i].point;
+    probes[sim_.probeName(i)] = {{"point", {p[0], p[1], p[2]}}, {"displacement", {u[0], u[1], u[2]}}, {"norm", u.norm()}};
+  }
+  j["probes"] = probes;
+  const fs::path tmp = fs::path(dir_) / "summary.json.tmp";
+  {
+    std::ofstream out(tmp);
+    out << std::setw(2) << j << '\n';
+    if (!out) throw std::runtime_error("cannot write " + tmp.string());
+  }
+  fs::rename(tmp, fs::path(dir_) / "summary.json");
+}
+
+void RunRecorder::finish(double wall_s) {
+  csv_.close();
+  fs::rename(fs::path(dir_) / "timeseries.partial.csv", fs::path(dir_) / "timeseries.csv");
+  writeSummary("ok", wall_s, -1, "");
+}
+
+void RunRecorder::fail(double wall_s, long step, const std::string& message) {
+  csv_.close();
+  writeSummary("numerical_failure", wall_s, step, message);
+}
+
+}  // namespace needle_sim

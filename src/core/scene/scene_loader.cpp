@@ -1,0 +1,419 @@
+#include "needle_sim/scene/scene_loader.hpp"
+
+#include <unistd.h>
+#include <yaml-cpp/yaml.h>
+
+#include <algorithm>
+#include <cmath>
+#include <fstream>
+#include <regex>
+#include <set>
+#include <sstream>
+
+#include "needle_sim/core/error.hpp"
+
+namespace needle_sim {
+
+long Scene::numSteps() const { return static_cast<long>(std::llround(std::ceil(duration / dt - 1e-9))); }
+
+double estimateSolverBytes(const Vec3i& cells) {
+  const double nodes = double(cells[0] + 1) * (cells[1] + 1) * (cells[2] + 1);
+  const double elements = double(cells[0]) * cells[1] * cells[2];
+  const double dofs = 3 * nodes;
+  // Factor fill of a 3D grid under nested dissection grows like n^(4/3); scaled from the
+  // 28,611-DOF phantom (14.5 M nonzeros, DESIGN.md §6).
+  const double lnz = 14.5e6 * std::pow(dofs / 28611.0, 4.0 / 3.0);
+  const double matrix = 81.0 / 2 * dofs * 12;     // upper triangle, value + index
+  const double positions = elements * 576 * 4.0;  // assembly scatter map
+  const double vectors = dofs * 8 * 30;
+  return 8 * 1.5 * lnz + matrix + positions + vectors;
+}
+
+namespace {
+
+const char* typeName(const YAML::Node& n) {
+  switch (n.Type()) {
+    case YAML::NodeType::Map: return "a map";
+    case YAML::NodeType::Sequence: return "a list";
+    case YAML::NodeType::Scalar: return "a scalar";
+    case YAML::NodeType::Null: return "empty";
+    default: return "undefined";
+  }
+}
+
+// Validating reader: every accessor names the key path in its errors.
+class Reader {
+ public:
+  explicit Reader(std::string file) : file_(std::move(file)) {}
+
+  [[noreturn]] void fail(const std::string& key, const std::string& problem) const {
+    throw InputError(file_, key, problem);
+  }
+
+  static std::string join(const std::string& path, const std::string& key) {
+    return path.empty() ? key : path + "." + key;
+  }
+
+  void requireMap(const YAML::Node& n, const std::string& path) const {
+    if (!n.IsMap()) fail(path, std::string("must be a map, got ") + typeName(n));
+  }
+
+  // Rejects keys outside `allowed`.
+  void checkKeys(const YAML::Node& n, const std::string& path, const std::vector<std::string>& allowed) const {
+    requireMap(n, path);
+    for (const auto& kv : n) {
+      const std::string k = kv.first.as<std::string>();
+      if (std::find(allowed.begin(), allowed.end(), k) == allowed.end()) {
+        std::string list;
+        for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + a;
+        fail(join(path, k), "unknown key (allowed here: " + list + ")");
+      }
+    }
+  }
+
+  YAML::Node child(const YAML::Node& n, const std::string& path, const std::string& key, bool required) const {
+    YAML::Node c = n[key];
+    if (!c.IsDefined() || c.IsNull()) {
+      if (required) fail(join(path, key), "missing required key");
+      return YAML::Node(YAML::NodeType::Undefined);
+    }
+    return c;
+  }
+
+  double number(const YAML::Node& n, const std::string& key) const {
+    if (!n.IsScalar()) fail(key, std::string("must be a number, got ") + typeName(n));
+    double v;
+    try {
+      v = n.as<double>();
+    } catch (const YAML::Exception&) {
+      fail(key, "must be a number, got '" + n.Scalar() + "'");
+    }
+    if (!std::isfinite(v)) fail(key, "must be finite, got '" + n.Scalar() + "'");
+    return v;
+  }
+
+  long long integer(const YAML::Node& n, const std::string& key) const {
+    if (!n.IsScalar()) fail(key, std::string("must be an integer, got ") + typeName(n));
+    try {
+      return n.as<long long>();
+    } catch (const YAML::Exception&) {
+      fail(key, "must be an integer, got '" + n.Scalar() + "'");
+    }
+  }
+
+  std::string string(const YAML::Node& n, const std::string& key) const {
+    if (!n.IsScalar()) fail(key, std::string("must be a string, got ") + typeName(n));
+    return n.Scalar();
+  }
+
+  Vec3 vec3(const YAML::Node& n, const std::string& key) const {
+    if (!n.IsSequence() || n.size() != 3) fail(key, "must be a list of 3 numbers [x, y, z]");
+    Vec3 v;
+    for (int i = 0; i < 3; ++i) v[i] = number(n[i], key + "[" + std::to_string(i) + "]");
+    return v;
+  }
+
+  double positive(const YAML::Node& parent, const std::string& path, const std::string& key) const {
+    const std::string k = join(path, key);
+    const double v = number(child(parent, path, key, true), k);
+    if (!(v > 0)) fail(k, "must be > 0, got " + fmt(v));
+    return v;
+  }
+
+  static std::string fmt(double v) {
+    std::ostringstream s;
+    s << v;
+    return s.str();
+  }
+
+  const std::string& file() const { return file_; }
+
+ private:
+  std::string file_;
+};
+
+BoxRegion readBox(const Reader& r, const YAML::Node& n, const std::string& path) {
+  r.checkKeys(n, path, {"min", "max"});
+  BoxRegion b;
+  b.min = r.vec3(r.child(n, path, "min", true), path + ".min");
+  b.max = r.vec3(r.child(n, path, "max", true), path + ".max");
+  for (int d = 0; d < 3; ++d)
+    if (!(b.max[d] > b.min[d]))
+      r.fail(path, "empty or inverted box: max must exceed min in every coordinate (axis " +
+                       std::string(1, "xyz"[d]) + ": min " + Reader::fmt(b.min[d]) + ", max " +
+                       Reader::fmt(b.max[d]) + ")");
+  return b;
+}
+
+Region readRegion(const Reader& r, const YAML::Node& n, const std::string& path) {
+  r.checkKeys(n, path, {"box"});
+  Region reg;
+  reg.box = readBox(r, r.child(n, path, "box", true), path + ".box");
+  return reg;
+}
+
+void readTime(const Reader& r, const YAML::Node& n, Scene& s) {
+  r.checkKeys(n, "time", {"dt", "duration"});
+  s.dt = r.positive(n, "time", "dt");
+  s.duration = r.positive(n, "time", "duration");
+  if (s.duration / s.dt > 1e9) r.fail("time", "duration / dt exceeds 1e9 steps");
+}
+
+void readSolver(const Reader& r, const YAML::Node& n, Scene& s) {
+  r.checkKeys(n, "solver", {"mode", "rayleigh", "static", "linear"});
+  if (auto m = r.child(n, "solver", "mode", false)) {
+    const std::string mode = r.string(m, "solver.mode");
+    if (mode == "dynamic") s.solver.mode = SolverScene::Mode::Dynamic;
+    else if (mode == "static") s.solver.mode = SolverScene::Mode::Static;
+    else r.fail("solver.mode", "must be 'dynamic' or 'static', got '" + mode + "'");
+  }
+  if (auto ray = r.child(n, "solver", "rayleigh", false)) {
+    r.checkKeys(ray, "solver.rayleigh", {"mass", "stiffness"});
+    if (auto a = r.child(ray, "solver.rayleigh", "mass", false)) s.solver.rayleigh_mass = r.number(a, "solver.rayleigh.mass");
+    if (auto b = r.child(ray, "solver.rayleigh", "stiffness", false))
+      s.solver.rayleigh_stiffness = r.number(b, "solver.rayleigh.stiffness");
+    if (s.solver.rayleigh_mass < 0) r.fail("solver.rayleigh.mass", "must be >= 0");
+    if (s.solver.rayleigh_stiffness < 0) r.fail("solver.rayleigh.stiffness", "must be >= 0");
+  }
+  if (auto st = r.child(n, "solver", "static", false)) {
+    r.checkKeys(st, "solver.static", {"tolerance", "max_iterations"});
+    if (st["tolerance"]) s.solver.static_tolerance = r.positive(st, "solver.static", "tolerance");
+    if (auto it = r.child(st, "solver.static", "max_iterations", false)) {
+      const long long v = r.integer(it, "solver.static.max_iterations");
+      if (v < 1 || v > 100000) r.fail("solver.static.max_iterations", "must be in [1, 100000]");
+      s.solver.static_max_iterations = static_cast<int>(v);
+    }
+  }
+  if (auto li = r.child(n, "solver", "linear", false)) {
+    const std::string p = "solver.linear";
+    r.checkKeys(li, p, {"method", "tolerance", "max_iterations", "refresh_iterations", "refactor_every", "ordering"});
+    auto& L = s.solver.linear;
+    if (auto m = r.child(li, p, "method", false)) {
+      const std::string v = r.string(m, p + ".method");
+      if (v == "direct") L.method = LinearSolverSettings::Method::Direct;
+      else if (v == "pcg") L.method = LinearSolverSettings::Method::Pcg;
+      else r.fail(p + ".method", "must be 'direct' or 'pcg', got '" + v + "'");
+    }
+    if (li["tolerance"]) {
+      L.tolerance = r.positive(li, p, "tolerance");
+      if (L.tolerance >= 1) r.fail(p + ".tolerance", "must be < 1");
+    }
+    auto readInt = [&](const char* key, int lo, int& out) {
+      if (auto v = r.child(li, p, key, false)) {
+        const long long x = r.integer(v, Reader::join(p, key));
+        if (x < lo || x > 1000000) r.fail(Reader::join(p, key), "must be in [" + std::to_string(lo) + ", 1000000]");
+        out = static_cast<int>(x);
+      }
+    };
+    readInt("max_iterations", 1, L.max_iterations);
+    readInt("refresh_iterations", 0, L.refresh_iterations);
+    readInt("refactor_every", 0, L.refactor_every);
+    if (auto o = r.child(li, p, "ordering", false)) {
+      const std::string v = r.string(o, p + ".ordering");
+      if (v == "auto") L.ordering = Ordering::Auto;
+      else if (v == "amd") L.ordering = Ordering::Amd;
+      else if (v == "metis") L.ordering = Ordering::Metis;
+      else r.fail(p + ".ordering", "must be 'auto', 'amd' or 'metis', got '" + v + "'");
+    }
+  }
+}
+
+void readTissue(const Reader& r, const YAML::Node& n, Scene& s) {
+  r.checkKeys(n, "tissue", {"geometry", "grid", "material", "gravity", "body_force", "dirichlet", "tractions"});
+  auto& T = s.tissue;
+  // geometry: exactly one of box / block
+  const auto g = r.child(n, "tissue", "geometry", true);
+  r.checkKeys(g, "tissue.geometry", {"box", "block"});
+  if (g["box"] && g["block"]) r.fail("tissue.geometry", "give either 'box' or 'block', not both");
+  if (g["box"]) {
+    T.geometry.kind = TissueGeometry::Kind::Box;
+    T.geometry.box = readBox(r, g["box"], "tissue.geometry.box");
+  } else if (g["block"]) {
+    T.geometry.kind = TissueGeometry::Kind::Block;
+    const auto b = g["block"];
+    r.checkKeys(b, "tissue.geometry.block", {"corners"});
+    const auto c = r.child(b, "tissue.geometry.block", "corners", true);
+    if (!c.IsSequence() || c.size() != 8)
+      r.fail("tissue.geometry.block.corners", "must be a list of 8 points (VTK hexahedron order)");
+    for (int a = 0; a < 8; ++a)
+      T.geometry.corners[a] = r.vec3(c[a], "tissue.geometry.block.corners[" + std::to_string(a) + "]");
+  } else {
+    r.fail("tissue.geometry", "missing 'box' (or 'block')");
+  }
+  // grid
+  const auto grid = r.child(n, "tissue", "grid", true);
+  r.checkKeys(grid, "tissue.grid", {"cells"});
+  const auto cells = r.child(grid, "tissue.grid", "cells", true);
+  if (!cells.IsSequence() || cells.size() != 3) r.fail("tissue.grid.cells", "must be a list of 3 integers [nx, ny, nz]");
+  for (int d = 0; d < 3; ++d) {
+    const long long v = r.integer(cells[d], "tissue.grid.cells[" + std::to_string(d) + "]");
+    if (v < 1) r.fail("tissue.grid.cells", "every cell count must be >= 1, got " + std::to_string(v));
+    if (v > 100000) r.fail("tissue.grid.cells", "cell count " + std::to_string(v) + " is too large");
+    T.cells[d] = static_cast<int>(v);
+  }
+  const double need = estimateSolverBytes(T.cells);
+  const double have = double(sysconf(_SC_PHYS_PAGES)) * double(sysconf(_SC_PAGE_SIZE));
+  if (need > 0.6 * have) {
+    std::ostringstream m;
+    m.precision(3);
+    m << "grid of " << double(T.cells[0]) * T.cells[1] * T.cells[2] << " cells needs an estimated "
+      << need / (1 << 30) << " GiB, more than 60% of this machine's " << have / (1 << 30) << " GiB";
+    r.fail("tissue.grid.cells", m.str());
+  }
+  // material
+  const auto mat = r.child(n, "tissue", "material", true);
+  r.checkKeys(mat, "tissue.material", {"young", "poisson", "density"});
+  T.material.young = r.positive(mat, "tissue.material", "young");
+  T.material.poisson = r.number(r.child(mat, "tissue.material", "poisson", true), "tissue.material.poisson");
+  if (!(T.material.poisson > -1 && T.material.poisson < 0.5))
+    r.fail("tissue.material.poisson", "must be in (-1, 0.5), got " + Reader::fmt(T.material.poisson));
+  T.material.density = r.positive(mat, "tissue.material", "density");
+  if (auto v = r.child(n, "tissue", "gravity", false)) T.gravity = r.vec3(v, "tissue.gravity");
+  if (auto v = r.child(n, "tissue", "body_force", false)) T.body_force = r.vec3(v, "tissue.body_force");
+  if (auto d = r.child(n, "tissue", "dirichlet", false)) {
+    if (!d.IsSequence()) r.fail("tissue.dirichlet", "must be a list of {region, displacement}");
+    for (size_t i = 0; i < d.size(); ++i) {
+      const std::string p = "tissue.dirichlet[" + std::to_string(i) + "]";
+      r.checkKeys(d[i], p, {"region", "displacement", "components"});
+      DirichletCondition dc;
+      dc.key = p;
+      dc.region = readRegion(r, r.child(d[i], p, "region", true), p + ".region");
+      if (auto u = r.child(d[i], p, "displacement", false)) dc.displacement = r.vec3(u, p + ".displacement");
+      if (auto c = r.child(d[i], p, "components", false)) {
+        if (!c.IsSequence() || c.size() == 0 || c.size() > 3)
+          r.fail(p + ".components", "must be a non-empty list of 'x', 'y', 'z'");
+        dc.components = {false, false, false};
+        for (size_t k = 0; k < c.size(); ++k) {
+          const std::string v = r.string(c[k], p + ".components");
+          if (v != "x" && v != "y" && v != "z") r.fail(p + ".components", "entries must be 'x', 'y' or 'z', got '" + v + "'");
+          bool& flag = dc.components[v[0] - 'x'];
+          if (flag) r.fail(p + ".components", "'" + v + "' listed twice");
+          flag = true;
+        }
+      }
+      T.dirichlet.push_back(dc);
+    }
+  }
+  if (auto tr = r.child(n, "tissue", "tractions", false)) {
+    if (!tr.IsSequence()) r.fail("tissue.tractions", "must be a list of {region, traction}");
+    for (size_t i = 0; i < tr.size(); ++i) {
+      const std::string p = "tissue.tractions[" + std::to_string(i) + "]";
+      r.checkKeys(tr[i], p, {"region", "traction"});
+      TractionLoad tl;
+      tl.key = p;
+      tl.region = readRegion(r, r.child(tr[i], p, "region", true), p + ".region");
+      tl.traction = r.vec3(r.child(tr[i], p, "traction", true), p + ".traction");
+      T.tractions.push_back(tl);
+    }
+  }
+}
+
+void readProbes(const Reader& r, const YAML::Node& n, Scene& s) {
+  if (!n.IsSequence()) r.fail("probes", "must be a list of {name, point}");
+  static const std::regex ident("[A-Za-z0-9_]+");
+  std::set<std::string> names;
+  for (size_t i = 0; i < n.size(); ++i) {
+    const std::string p = "probes[" + std::to_string(i) + "]";
+    r.checkKeys(n[i], p, {"name", "point"});
+    ProbeScene pr;
+    pr.name = r.string(r.child(n[i], p, "name", true), p + ".name");
+    if (!std::regex_match(pr.name, ident))
+      r.fail(p + ".name", "must be letters, digits and '_' only (it names CSV columns), got '" + pr.name + "'");
+    if (!names.insert(pr.name).second) r.fail(p + ".name", "duplicate probe name '" + pr.name + "'");
+    pr.point = r.vec3(r.child(n[i], p, "point", true), p + ".point");
+    s.probes.push_back(pr);
+  }
+}
+
+// Applies "a.b.c=value" to the tree, creating maps on the way; indices select list items.
+void applyOverride(YAML::Node root, const std::string& spec, const std::string& file) {
+  const auto eq = spec.find('=');
+  if (eq == std::string::npos || eq == 0)
+    throw InputError(file, spec, "override must have the form key.path=value");
+  const std::string path = spec.substr(0, eq);
+  YAML::Node value;
+  try {
+    value = YAML::Load(spec.substr(eq + 1));
+  } catch (const YAML::Exception& e) {
+    throw InputError(file, path, "override value is not valid YAML: " + e.msg);
+  }
+  std::vector<std::string> parts;
+  std::stringstream ss(path);
+  for (std::string p; std::getline(ss, p, '.');) {
+    if (p.empty()) throw InputError(file, path, "empty component in override key");
+    parts.push_back(p);
+  }
+  YAML::Node cur = root;
+  for (size_t i = 0; i < parts.size(); ++i) {
+    const std::string& k = parts[i];
+    const bool last = i + 1 == parts.size();
+    if (cur.IsSequence()) {
+      size_t idx;
+      try {
+        size_t used = 0;
+        idx = std::stoul(k, &used);
+        if (used != k.size()) throw std::invalid_argument(k);
+      } catch (const std::exception&) {
+        throw InputError(file, path, "'" + k + "' must be a list index");
+      }
+      if (idx >= cur.size())
+        throw InputError(file, path, "list index " + k + " out of range (size " + std::to_string(cur.size()) + ")");
+      if (last) cur[idx] = value;
+      else cur.reset(YAML::Node(cur[idx]));
+      continue;
+    }
+    if (!cur.IsMap() && !cur.IsNull())
+      throw InputError(file, path, "cannot descend into '" + k + "': parent is not a map");
+    if (last) {
+      cur[k] = value;
+    } else {
+      if (!cur[k] || cur[k].IsNull()) cur[k] = YAML::Node(YAML::NodeType::Map);
+      YAML::Node next = cur[k];
+      cur.reset(next);
+    }
+  }
+}
+
+Scene build(YAML::Node root, const std::string& file, const std::vector<std::string>& overrides) {
+  Reader r(file);
+  if (!root.IsMap()) r.fail("", std::string("scene must be a YAML map at the top level, got ") + typeName(root));
+  for (const auto& o : overrides) applyOverride(root, o, file);
+  r.checkKeys(root, "", {"name", "description", "time", "solver", "tissue", "probes"});
+  Scene s;
+  s.file = file;
+  if (auto v = r.child(root, "", "name", false)) s.name = r.string(v, "name");
+  if (s.name.empty()) {
+    std::string stem = file.substr(file.find_last_of('/') + 1);
+    s.name = stem.substr(0, stem.find_last_of('.'));
+  }
+  if (auto v = r.child(root, "", "description", false)) s.description = r.string(v, "description");
+  readTime(r, r.child(root, "", "time", true), s);
+  if (auto v = r.child(root, "", "solver", false)) readSolver(r, v, s);
+  readTissue(r, r.child(root, "", "tissue", true), s);
+  if (auto v = r.child(root, "", "probes", false)) readProbes(r, v, s);
+  if (s.solver.mode == SolverScene::Mode::Static && s.tissue.dirichlet.empty())
+    r.fail("tissue.dirichlet", "static mode needs Dirichlet conditions that hold the body (none given)");
+  return s;
+}
+
+}  // namespace
+
+Scene parseScene(const std::string& text, const std::string& file, const std::vector<std::string>& overrides) {
+  YAML::Node root;
+  try {
+    root = YAML::Load(text);
+  } catch (const YAML::Exception& e) {
+    throw InputError(file, "", "not valid YAML: " + e.msg + " (line " + std::to_string(e.mark.line + 1) + ")");
+  }
+  return build(root, file, overrides);
+}
+
+Scene loadScene(const std::string& path, const std::vector<std::string>& overrides) {
+  std::ifstream in(path);
+  if (!in) throw InputError(path, "", "cannot open scene file");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return parseScene(ss.str(), path, overrides);
+}
+
+}  // namespace needle_sim

@@ -1,0 +1,187 @@
+#include "needle_sim/sim/tissue_body.hpp"
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+
+#include "needle_sim/core/error.hpp"
+
+namespace needle_sim {
+
+namespace {
+double msSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+}
+
+std::string fmtSci(double v) {
+  char b[32];
+  std::snprintf(b, sizeof b, "%.3e", v);
+  return b;
+}
+
+// Consistent nodal forces of a uniform traction on a bilinear quadrilateral face.
+void addFaceTraction(const HexMesh& mesh, const BoundaryFace& f, const Vec3& t, VecX& out) {
+  const double g = 1.0 / std::sqrt(3.0);
+  static const double sgn[4][2] = {{-1, -1}, {1, -1}, {1, 1}, {-1, 1}};
+  for (int i = 0; i < 4; ++i) {
+    const double s = sgn[i][0] * g, r = sgn[i][1] * g;
+    Vec3 ds = Vec3::Zero(), dr = Vec3::Zero();
+    double N[4];
+    for (int q = 0; q < 4; ++q) {
+      N[q] = 0.25 * (1 + sgn[q][0] * s) * (1 + sgn[q][1] * r);
+      ds += 0.25 * sgn[q][0] * (1 + sgn[q][1] * r) * mesh.node(f.nodes[q]);
+      dr += 0.25 * sgn[q][1] * (1 + sgn[q][0] * s) * mesh.node(f.nodes[q]);
+    }
+    const double dA = ds.cross(dr).norm();
+    for (int q = 0; q < 4; ++q) node3(out, f.nodes[q]) += t * (N[q] * dA);
+  }
+}
+}  // namespace
+
+TissueBody::TissueBody(HexMesh mesh, const TissueScene& tissue, const SolverScene& solver, const std::string& file)
+    : mesh_(std::make_unique<HexMesh>(std::move(mesh))), settings_(solver) {
+  model_ = std::make_unique<CorotationalHexModel>(*mesh_, tissue.material);
+  const int n = mesh_->numNodes();
+  rest_ = mesh_->restPositions();
+  x_ = rest_;
+  v_ = VecX::Zero(3 * n);
+  const double tol = 1e-8 * (mesh_->boundsMax() - mesh_->boundsMin()).norm();
+
+  // Dirichlet conditions: later conditions override earlier ones on shared nodes.
+  std::vector<char> prescribed(3 * n, 0);
+  for (const auto& dc : tissue.dirichlet) {
+    int count = 0;
+    for (int i = 0; i < n; ++i)
+      if (dc.region.contains(mesh_->node(i), tol)) {
+        ++count;
+        for (int d = 0; d < 3; ++d)
+          if (dc.components[d]) {
+            prescribed[3 * i + d] = 1;
+            x_[3 * i + d] = rest_[3 * i + d] + dc.displacement[d];
+          }
+      }
+    if (count == 0) throw InputError(file, dc.key + ".region", "selects no grid node of the tissue");
+  }
+  dofs_ = DofMap(prescribed);
+
+  // Loads: gravity and body force through the lumped (row-sum) mass, tractions on faces.
+  const VecX& vol = model_->nodalVolume();
+  mass_.resize(3 * n);
+  f_ext_.setZero(3 * n);
+  const double rho = tissue.material.density;
+  for (int i = 0; i < n; ++i) {
+    mass_.segment<3>(3 * i).setConstant(rho * vol[i]);
+    node3(f_ext_, i) = vol[i] * (rho * tissue.gravity + tissue.body_force);
+  }
+  if (!tissue.tractions.empty()) {
+    const auto faces = mesh_->boundaryFaces();
+    for (const auto& tl : tissue.tractions) {
+      int count = 0;
+      for (const auto& f : faces) {
+        bool inside = true;
+        for (int q : f.nodes) inside = inside && tl.region.contains(mesh_->node(q), tol);
+        if (!inside) continue;
+        ++count;
+        addFaceTraction(*mesh_, f, tl.traction, f_ext_);
+      }
+      if (count == 0) throw InputError(file, tl.key + ".region", "contains no boundary face of the tissue");
+    }
+  }
+  dofs_.gather(mass_, mass_free_);
+  solver_ = std::make_unique<SystemSolver>(*model_, dofs_, settings_.linear);
+  dv_free_.setZero(dofs_.numFree());
+}
+
+void TissueBody::accumulate(StepStats& s, const LinearSolveStats& l) const {
+  s.assemble_ms += l.assemble_ms;
+  s.factor_ms += l.factor_ms;
+  s.solve_ms += l.solve_ms;
+  s.linear_iterations += l.iterations;
+  s.factorizations += l.refactored ? 1 : 0;
+  s.linear_residual = std::max(s.linear_residual, l.relative_residual);
+}
+
+StepStats TissueBody::stepDynamic(double h) {
+  StepStats st;
+  auto t0 = std::chrono::steady_clock::now();
+  const double alpha = settings_.rayleigh_mass, beta = settings_.rayleigh_stiffness;
+  model_->updateRotations(x_);
+  VecX f = f_ext_;
+  model_->addInternalForce(x_, f);
+  // f - h K v - C v = f - (h + beta) K v - alpha M v
+  model_->addStiffnessProduct(v_, -(h + beta), f);
+  f.array() -= alpha * mass_.array() * v_.array();
+  VecX b;
+  dofs_.gather(f, b);
+  b *= h;
+  st.forces_ms = msSince(t0);
+
+  const auto l = solver_->solve(mass_free_, 1 + h * alpha, h * beta + h * h, b, dv_free_);
+  accumulate(st, l);
+
+  VecX dv;
+  dofs_.scatter(dv_free_, dv);
+  v_ += dv;  // prescribed entries of dv are zero and v stays zero there
+  x_ += h * v_;
+  return st;
+}
+
+StepStats TissueBody::solveStatic() {
+  StepStats st;
+  const double tol = settings_.static_tolerance;
+  VecX r_full, r, dx_free, dx;
+  double ref = 0;
+  {
+    VecX fe;
+    dofs_.gather(f_ext_, fe);
+    ref = fe.norm();
+  }
+  for (int it = 0; it <= settings_.static_max_iterations; ++it) {
+    auto t0 = std::chrono::steady_clock::now();
+    model_->updateRotations(x_);
+    r_full = f_ext_;
+    model_->addInternalForce(x_, r_full);
+    dofs_.gather(r_full, r);
+    const double rn = r.norm();
+    if (it == 0) ref = std::max(ref, rn);
+    st.forces_ms += msSince(t0);
+    st.newton_residual = ref > 0 ? rn / ref : 0.0;
+    if (!std::isfinite(rn)) throw NumericalError(-1, "static solve: residual is NaN/Inf");
+    // Converged when the residual is small, or when the last Newton correction is below the
+    // requested accuracy of the displacement (on ill-conditioned problems such as slender
+    // cantilevers the residual bottoms out near cond(K) * eps before the solution does).
+    const double un = (x_ - rest_).norm();
+    if (rn <= tol * ref || ref == 0 || (it > 0 && dx.norm() <= tol * un)) {
+      st.newton_iterations = it;
+      v_.setZero();
+      return st;
+    }
+    if (it == settings_.static_max_iterations) break;
+    dx_free.setZero(r.size());
+    const auto l = solver_->solve(mass_free_, 0.0, 1.0, r, dx_free);
+    accumulate(st, l);
+    dofs_.scatter(dx_free, dx);
+    x_ += dx;
+  }
+  throw NumericalError(-1, "static solve did not converge in " + std::to_string(settings_.static_max_iterations) +
+                               " Newton iterations (relative residual " + fmtSci(st.newton_residual) + ")");
+}
+
+double TissueBody::kineticEnergy() const { return 0.5 * (mass_.array() * v_.array().square()).sum(); }
+
+void TissueBody::setState(const VecX& x, const VecX& v) {
+  for (int i = 0; i < dofs_.numFull(); ++i)
+    if (!dofs_.prescribed(i)) {
+      x_[i] = x[i];
+      v_[i] = v[i];
+    }
+}
+
+}  // namespace needle_sim
+
+namespace needle_sim {
+void TissueBody::setPrescribedPositions(const VecX& x) {
+  for (int i = 0; i < dofs_.numFull(); ++i)
+    if (dofs_.prescribed(i)) x_[i] = x[i];
+}
+}  // namespace needle_sim

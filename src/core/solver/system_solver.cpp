@@ -1,0 +1,88 @@
+#include "needle_sim/solver/system_solver.hpp"
+
+#include <chrono>
+
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/solver/pcg.hpp"
+
+namespace needle_sim {
+
+namespace {
+double msSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+}
+}  // namespace
+
+SystemSolver::SystemSolver(const CorotationalHexModel& model, const DofMap& dofs,
+                           const LinearSolverSettings& s)
+    : model_(model), dofs_(dofs), settings_(s), assembler_(model.mesh(), dofs), chol_(s.ordering) {}
+
+void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const {
+  dofs_.scatter(v, full_in_);
+  full_out_.setZero(dofs_.numFull());
+  model_.addStiffnessProduct(full_in_, c_k, full_out_);
+  dofs_.gather(full_out_, out);
+  out.array() += c_m * mass_free.array() * v.array();
+}
+
+void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st) {
+  auto t0 = std::chrono::steady_clock::now();
+  assembler_.setZero();
+  hex8::Mat24 Ke;
+  for (int e = 0; e < model_.numElements(); ++e) {
+    model_.elementStiffness(e, Ke);
+    assembler_.addElement(e, Ke, c_k);
+  }
+  if (c_m != 0.0) assembler_.addDiagonal(mass_free, c_m);
+  st.assemble_ms += msSince(t0);
+  t0 = std::chrono::steady_clock::now();
+  if (!chol_.analyzed()) chol_.analyze(assembler_.matrix());
+  const bool ok = chol_.factorize(assembler_.matrix());
+  st.factor_ms += msSince(t0);
+  st.refactored = true;
+  if (!ok)
+    throw NumericalError(-1, "system matrix is not positive definite (are rigid motions "
+                             "constrained? is the mesh inverted?)");
+  stale_ = false;
+  calls_since_factor_ = 0;
+}
+
+LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x) {
+  LinearSolveStats st;
+  const bool direct = settings_.method == LinearSolverSettings::Method::Direct;
+  if (direct || stale_ || !chol_.factored() ||
+      (settings_.refactor_every > 0 && calls_since_factor_ >= settings_.refactor_every))
+    refactor(mass_free, c_m, c_k, st);
+  ++calls_since_factor_;
+
+  auto t0 = std::chrono::steady_clock::now();
+  if (direct) {
+    chol_.solve(b, x);
+    st.solve_ms = msSince(t0);
+    if (!x.allFinite()) throw NumericalError(-1, "linear solve produced NaN/Inf");
+    return st;
+  }
+  auto A = [&](const VecX& v, VecX& out) { apply(mass_free, c_m, c_k, v, out); };
+  auto M = [&](const VecX& r, VecX& z) { chol_.solve(r, z); };
+  if (x.size() != b.size() || !x.allFinite()) x.setZero(b.size());
+  PcgResult r = pcg(A, M, b, x, settings_.tolerance, settings_.max_iterations);
+  if (!r.converged && !st.refactored) {
+    // The stale preconditioner is too far off: refresh it and solve again.
+    st.solve_ms += msSince(t0);
+    refactor(mass_free, c_m, c_k, st);
+    t0 = std::chrono::steady_clock::now();
+    const int first = r.iterations;
+    r = pcg(A, M, b, x, settings_.tolerance, settings_.max_iterations);
+    r.iterations += first;
+  }
+  st.solve_ms += msSince(t0);
+  st.iterations = r.iterations;
+  st.relative_residual = r.relative_residual;
+  if (!r.converged || !x.allFinite())
+    throw NumericalError(-1, "conjugate gradients did not converge (relative residual " +
+                                 std::to_string(r.relative_residual) + ")");
+  if (r.iterations > settings_.refresh_iterations) stale_ = true;
+  return st;
+}
+
+}  // namespace needle_sim

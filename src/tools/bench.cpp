@@ -1,0 +1,121 @@
+#include "bench.hpp"
+
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <iomanip>
+#include <nlohmann/json.hpp>
+#include <regex>
+
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/io/run_recorder.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/simulation.hpp"
+
+using namespace needle_sim;
+
+namespace {
+
+struct Timing {
+  int dofs = 0;
+  Percentiles total, forces, assemble, factor, solve;
+  double iterations_mean = 0;
+  long factorizations = 0;
+  std::vector<std::vector<Vec3>> probes;  // per step, per probe
+};
+
+Timing timeScene(const Scene& scene, int warmup, int steps) {
+  Simulation sim(scene);
+  Timing t;
+  t.dofs = sim.tissue().mesh().numDofs();
+  std::vector<double> total, forces, assemble, factor, solve;
+  long iterations = 0;
+  for (int k = 0; k < warmup + steps; ++k) {
+    const auto t0 = std::chrono::steady_clock::now();
+    const StepStats s = sim.step();
+    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    std::vector<Vec3> p;
+    for (int i = 0; i < sim.numProbes(); ++i) p.push_back(sim.probeDisplacement(i));
+    t.probes.push_back(p);
+    if (k < warmup) continue;
+    total.push_back(ms);
+    forces.push_back(s.forces_ms);
+    assemble.push_back(s.assemble_ms);
+    factor.push_back(s.factor_ms);
+    solve.push_back(s.solve_ms);
+    iterations += s.linear_iterations;
+    t.factorizations += s.factorizations;
+  }
+  t.total = percentiles(total);
+  t.forces = percentiles(forces);
+  t.assemble = percentiles(assemble);
+  t.factor = percentiles(factor);
+  t.solve = percentiles(solve);
+  t.iterations_mean = steps > 0 ? double(iterations) / steps : 0;
+  return t;
+}
+
+}  // namespace
+
+int benchCommand(const BenchOptions& o) {
+  static const std::regex cells_re("([0-9]+)x([0-9]+)x([0-9]+)");
+  nlohmann::json out = nlohmann::json::array();
+  std::printf("needle_sim bench: %s, %d timed steps after %d warm-up steps (times in ms)\n", o.scene.c_str(), o.steps,
+              o.warmup);
+  std::printf("| grid | DOFs | method | step median | step mean | step max | forces+RHS | assembly | factor | solve "
+              "| CG it/step | factorisations | probe diff vs direct |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+  for (const auto& c : o.cells) {
+    std::smatch m;
+    if (!std::regex_match(c, m, cells_re)) throw InputError("", "--cells", "'" + c + "' is not of the form NXxNYxNZ");
+    std::vector<std::string> sets = o.sets;
+    sets.push_back("tissue.grid.cells=[" + m[1].str() + "," + m[2].str() + "," + m[3].str() + "]");
+    sets.push_back("solver.mode=dynamic");
+    const Scene scene = loadScene(o.scene, sets);
+    std::vector<std::pair<std::string, Timing>> runs;
+    runs.emplace_back(scene.solver.linear.method == LinearSolverSettings::Method::Pcg ? "pcg" : "direct",
+                      timeScene(scene, o.warmup, o.steps));
+    if (o.compare_direct) {
+      Scene d = scene;
+      d.solver.linear.method = LinearSolverSettings::Method::Direct;
+      runs.emplace_back("direct", timeScene(d, o.warmup, o.steps));
+    }
+    // Largest probe difference over all steps, relative to the largest probe displacement.
+    double diff = -1;
+    if (runs.size() == 2) {
+      double num = 0, den = 0;
+      const auto& a = runs[0].second.probes;
+      const auto& b = runs[1].second.probes;
+      for (size_t k = 0; k < a.size(); ++k)
+        for (size_t i = 0; i < a[k].size(); ++i) {
+          num = std::max(num, (a[k][i] - b[k][i]).norm());
+          den = std::max(den, b[k][i].norm());
+        }
+      diff = den > 0 ? num / den : 0;
+    }
+    for (const auto& [name, t] : runs) {
+      char d[32] = "-";
+      if (diff >= 0 && name != "direct") std::snprintf(d, sizeof d, "%.1e", diff);
+      std::printf("| %s | %d | %s | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f | %.3f | %.2f | %ld | %s |\n", c.c_str(),
+                  t.dofs, name.c_str(), t.total.median, t.total.mean, t.total.max, t.forces.median,
+                  t.assemble.median, t.factor.median, t.solve.median, t.iterations_mean, t.factorizations, d);
+      std::fflush(stdout);
+      out.push_back({{"grid", c},
+                     {"dofs", t.dofs},
+                     {"method", name},
+                     {"step_ms", {{"median", t.total.median}, {"mean", t.total.mean}, {"p95", t.total.p95}, {"max", t.total.max}}},
+                     {"forces_ms_median", t.forces.median},
+                     {"assemble_ms_median", t.assemble.median},
+                     {"factor_ms_median", t.factor.median},
+                     {"solve_ms_median", t.solve.median},
+                     {"cg_iterations_per_step", t.iterations_mean},
+                     {"factorizations", t.factorizations},
+                     {"probe_relative_difference_vs_direct", diff}});
+    }
+  }
+  if (!o.json_out.empty()) {
+    std::ofstream f(o.json_out);
+    f << std::setw(2) << out << '\n';
+  }
+  return 0;
+}

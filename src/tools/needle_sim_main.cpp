@@ -1,0 +1,149 @@
+// needle_sim: the headless command-line driver of the simulator.
+//
+// Sample runs:
+//   needle_sim run config/scenes/phantom_8x4x4.yaml --out results/phantom_8x4x4
+//   needle_sim run config/scenes/phantom_8x4x4.yaml --out /tmp/r --set tissue.grid.cells=[16,8,8]
+//   needle_sim check config/scenes/cook_membrane.yaml --set tissue.grid.cells=[32,32,1]
+//   needle_sim bench --steps 30
+//
+// Exit status: 0 success, 2 invalid input (scene, overrides, command line),
+// 3 numerical failure (NaN/Inf, divergence, solver failure; reported with the step).
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <iostream>
+
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/io/run_recorder.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/simulation.hpp"
+#include "bench.hpp"
+
+using namespace needle_sim;
+
+namespace {
+
+constexpr int kExitInput = 2;
+constexpr int kExitNumerical = 3;
+
+int runCommand(const std::string& scene_path, const std::string& out_dir, const std::vector<std::string>& sets,
+               bool quiet) {
+  Scene scene;
+  std::unique_ptr<Simulation> sim;
+  try {
+    scene = loadScene(scene_path, sets);
+    sim = std::make_unique<Simulation>(scene);
+  } catch (const InputError& e) {
+    std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
+    return kExitInput;
+  }
+  std::unique_ptr<RunRecorder> rec;
+  try {
+    rec = std::make_unique<RunRecorder>(*sim, out_dir);
+  } catch (const std::exception& e) {
+    std::cerr << "needle_sim: " << e.what() << '\n';
+    return kExitInput;
+  }
+  const long n = scene.numSteps();
+  if (!quiet)
+    std::cerr << "needle_sim: scene '" << scene.name << "': " << sim->tissue().mesh().numDofs() << " dofs, "
+              << sim->tissue().mesh().numElements() << " elements, " << n << " steps\n";
+  using clock = std::chrono::steady_clock;
+  const auto t_start = clock::now();
+  auto t_report = t_start;
+  for (long k = 0; k < n; ++k) {
+    const auto t0 = clock::now();
+    try {
+      const StepStats& s = sim->step();
+      rec->recordStep(s, std::chrono::duration<double, std::milli>(clock::now() - t0).count());
+    } catch (const NumericalError& e) {
+      const double wall = std::chrono::duration<double>(clock::now() - t_start).count();
+      rec->fail(wall, e.step(), e.what());
+      std::cerr << "needle_sim: numerical failure: " << e.what() << "\n"
+                << "needle_sim: failure report in " << rec->summaryPath() << '\n';
+      return kExitNumerical;
+    }
+    if (!quiet && clock::now() - t_report > std::chrono::seconds(2)) {
+      t_report = clock::now();
+      std::cerr << "needle_sim: step " << sim->stepIndex() << "/" << n << "  t=" << sim->time() << " s\n";
+    }
+  }
+  const double wall = std::chrono::duration<double>(clock::now() - t_start).count();
+  rec->finish(wall);
+  const auto p = percentiles(rec->stepTimes());
+  std::printf("needle_sim: %ld steps in %.3f s (step median %.3f ms, p95 %.3f ms, max %.3f ms)\n", n, wall,
+              p.median, p.p95, p.max);
+  for (int i = 0; i < sim->numProbes(); ++i) {
+    const Vec3 u = sim->probeDisplacement(i);
+    std::printf("  probe %-6s u = (% .6e, % .6e, % .6e) m\n", sim->probeName(i).c_str(), u[0], u[1], u[2]);
+  }
+  std::printf("results: %s\n         %s\n", rec->summaryPath().c_str(), rec->timeseriesPath().c_str());
+  return 0;
+}
+
+int checkCommand(const std::string& scene_path, const std::vector<std::string>& sets) {
+  try {
+    const Scene scene = loadScene(scene_path, sets);
+    Simulation sim(scene);
+    std::printf("%s: ok (%d dofs, %d elements, %ld steps)\n", scene_path.c_str(), sim.tissue().mesh().numDofs(),
+                sim.tissue().mesh().numElements(), scene.numSteps());
+    return 0;
+  } catch (const InputError& e) {
+    std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
+    return kExitInput;
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"needle_sim: real-time, error-controlled FE simulation of needle insertion (headless driver)"};
+  app.require_subcommand(1);
+
+  std::string scene_path, out_dir;
+  std::vector<std::string> sets;
+  bool quiet = false;
+  auto* run = app.add_subcommand("run", "run a scene and write DIR/summary.json and DIR/timeseries.csv");
+  run->add_option("scene", scene_path, "scene file (YAML)")->required();
+  run->add_option("--out,-o", out_dir, "output directory")->required();
+  run->add_option("--set", sets, "override a scene value: key.path=value (repeatable)");
+  run->add_flag("--quiet,-q", quiet, "no progress on stderr");
+
+  auto* check = app.add_subcommand("check", "validate a scene (and build its mesh) without running it");
+  check->add_option("scene", scene_path, "scene file (YAML)")->required();
+  check->add_option("--set", sets, "override a scene value: key.path=value (repeatable)");
+
+  BenchOptions bench_opts;
+  auto* bench = app.add_subcommand("bench", "time dynamic steps of the phantom meshes (median, split by phase)");
+  bench->add_option("--scene", bench_opts.scene, "scene to time")->capture_default_str();
+  bench->add_option("--cells", bench_opts.cells, "grids to time, e.g. 8x4x4 16x8x8")->capture_default_str();
+  bench->add_option("--steps", bench_opts.steps, "timed steps per grid")->capture_default_str();
+  bench->add_option("--warmup", bench_opts.warmup, "untimed steps first")->capture_default_str();
+  bench->add_option("--set", bench_opts.sets, "override a scene value (repeatable)");
+  bench->add_flag("--compare-direct", bench_opts.compare_direct,
+                  "also run with a fresh factorisation every step and report the probe difference");
+  bench->add_option("--json", bench_opts.json_out, "also write the results as JSON to this file");
+
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    const int code = app.exit(e);
+    return code == 0 ? 0 : kExitInput;
+  }
+  try {
+    if (*run) return runCommand(scene_path, out_dir, sets, quiet);
+    if (*check) return checkCommand(scene_path, sets);
+    if (*bench) return benchCommand(bench_opts);
+  } catch (const InputError& e) {
+    std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
+    return kExitInput;
+  } catch (const NumericalError& e) {
+    std::cerr << "needle_sim: numerical failure: " << e.what() << '\n';
+    return kExitNumerical;
+  } catch (const std::exception& e) {
+    std::cerr << "needle_sim: error: " << e.what() << '\n';
+    return 1;
+  }
+  return 0;
+}

@@ -1,0 +1,112 @@
+// The needle_sim command-line tool as a user runs it: exit status 2 with a message naming
+// the file and key for every bad scene, 0 with complete results for a good run, 3 with a
+// failure report (and no result that looks like a success) on a numerical failure.
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+using nlohmann::json;
+namespace fs = std::filesystem;
+
+namespace {
+const std::string kSrc = NEEDLE_SIM_SOURCE_DIR;
+const std::string kTool = NEEDLE_SIM_TOOL;
+
+struct Result {
+  int status;
+  std::string err;
+};
+
+Result runTool(const std::string& args) {
+  const fs::path errfile = fs::temp_directory_path() / ("needle_sim_cli_" + std::to_string(::getpid()) + ".err");
+  const std::string cmd = "'" + kTool + "' " + args + " >/dev/null 2>'" + errfile.string() + "'";
+  const int raw = std::system(cmd.c_str());
+  std::ifstream in(errfile);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  fs::remove(errfile);
+  return {WIFEXITED(raw) ? WEXITSTATUS(raw) : -1, ss.str()};
+}
+
+fs::path freshDir(const std::string& name) {
+  const fs::path d = fs::temp_directory_path() / ("needle_sim_cli_" + std::to_string(::getpid())) / name;
+  fs::remove_all(d);
+  return d;
+}
+
+std::string firstLine(const fs::path& p) {
+  std::ifstream in(p);
+  std::string line;
+  std::getline(in, line);
+  return line;
+}
+}  // namespace
+
+TEST(Cli, BadScenesExitWithStatus2AndNameFileAndKey) {
+  for (const auto& e : fs::directory_iterator(kSrc + "/test/data/bad_scenes")) {
+    SCOPED_TRACE(e.path().string());
+    const fs::path out = freshDir("bad");
+    const Result r = runTool("run '" + e.path().string() + "' --out '" + out.string() + "'");
+    EXPECT_EQ(r.status, 2) << r.err;
+    EXPECT_NE(r.err.find(e.path().string()), std::string::npos) << r.err;
+    const std::string key = firstLine(e.path()).substr(std::string("# expect-key: ").size());
+    if (!key.empty()) EXPECT_NE(r.err.find("'" + key), std::string::npos) << r.err;
+    EXPECT_FALSE(fs::exists(out / "summary.json"));
+  }
+}
+
+TEST(Cli, RunWritesSummaryAndTimeseries) {
+  const fs::path out = freshDir("ok");
+  const Result r = runTool("run '" + kSrc + "/config/scenes/phantom_8x4x4.yaml' --out '" + out.string() +
+                           "' --set time.duration=0.02 --quiet");
+  ASSERT_EQ(r.status, 0) << r.err;
+  std::ifstream in(out / "summary.json");
+  const json j = json::parse(in);
+  EXPECT_EQ(j["status"], "ok");
+  EXPECT_EQ(j["scene"]["name"], "phantom_8x4x4");
+  EXPECT_EQ(j["dofs"], 675);
+  EXPECT_EQ(j["elements"], 128);
+  EXPECT_EQ(j["steps"], 20);
+  for (const char* k : {"median", "p95", "max"}) EXPECT_GT(j["step_ms"][k].get<double>(), 0.0);
+  EXPECT_EQ(j["probes"].size(), 12u);
+  // Gravity pulls every probe down.
+  EXPECT_LT(j["probes"]["p1"]["displacement"][2].get<double>(), 0.0);
+  // Header plus one row per step, probe columns present.
+  std::ifstream csv(out / "timeseries.csv");
+  std::string header, line;
+  std::getline(csv, header);
+  EXPECT_NE(header.find("step,t,dofs,step_ms"), std::string::npos);
+  EXPECT_NE(header.find("p1E_ux,p1E_uy,p1E_uz"), std::string::npos);
+  int rows = 0;
+  while (std::getline(csv, line)) ++rows;
+  EXPECT_EQ(rows, 20);
+  EXPECT_FALSE(fs::exists(out / "timeseries.partial.csv"));
+}
+
+TEST(Cli, NumericalFailureExitsWith3AndLeavesNoSuccessLookalike) {
+  const fs::path out = freshDir("fail");
+  // A large load and a single Newton iteration: the static solve cannot converge.
+  const Result r = runTool("run '" + kSrc + "/config/scenes/cantilever_hex8.yaml' --out '" + out.string() +
+                           "' --set solver.static.max_iterations=1 --set tissue.tractions.0.traction=[0,100,0]");
+  EXPECT_EQ(r.status, 3) << r.err;
+  EXPECT_NE(r.err.find("step 1"), std::string::npos) << r.err;
+  std::ifstream in(out / "summary.json");
+  const json j = json::parse(in);
+  EXPECT_EQ(j["status"], "numerical_failure");
+  EXPECT_EQ(j["failed_step"], 1);
+  EXPECT_FALSE(fs::exists(out / "timeseries.csv"));
+}
+
+TEST(Cli, UsageErrorsExitWith2) {
+  EXPECT_EQ(runTool("").status, 2);
+  EXPECT_EQ(runTool("run").status, 2);
+  EXPECT_EQ(runTool("frobnicate").status, 2);
+  const fs::path out = freshDir("usage");
+  EXPECT_EQ(runTool("run /nonexistent/scene.yaml --out '" + out.string() + "'").status, 2);
+  EXPECT_EQ(runTool("run '" + kSrc + "/config/scenes/phantom_8x4x4.yaml' --out '" + out.string() + "' --set nonsense").status, 2);
+  EXPECT_EQ(runTool("check '" + kSrc + "/config/scenes/phantom_8x4x4.yaml'").status, 0);
+}

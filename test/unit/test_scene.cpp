@@ -1,0 +1,109 @@
+// Scene files: every shipped scene loads; overrides reach nested keys and list items; every
+// bad scene under test/data/bad_scenes is rejected with an InputError naming the key given
+// in its first line ("# expect-key: ...") and the file.
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/simulation.hpp"
+
+using namespace needle_sim;
+namespace fs = std::filesystem;
+
+namespace {
+const std::string kSrc = NEEDLE_SIM_SOURCE_DIR;
+const std::string kPhantom = kSrc + "/config/scenes/phantom_8x4x4.yaml";
+
+std::string expectedKey(const fs::path& p) {
+  std::ifstream in(p);
+  std::string line;
+  std::getline(in, line);
+  const std::string tag = "# expect-key: ";
+  return line.rfind(tag, 0) == 0 ? line.substr(tag.size()) : "<missing expect-key line>";
+}
+}  // namespace
+
+TEST(Scene, ShippedScenesLoadAndBuild) {
+  int count = 0;
+  for (const auto& e : fs::directory_iterator(kSrc + "/config/scenes")) {
+    if (e.path().extension() != ".yaml") continue;
+    SCOPED_TRACE(e.path().string());
+    const Scene s = loadScene(e.path().string());
+    EXPECT_FALSE(s.name.empty());
+    EXPECT_GT(s.numSteps(), 0);
+    if (s.tissue.cells.prod() <= 1024) Simulation sim(s);  // builds, embeds probes
+    ++count;
+  }
+  EXPECT_GE(count, 5);
+}
+
+TEST(Scene, PhantomValuesAreThePapers) {
+  const Scene s = loadScene(kPhantom);
+  EXPECT_EQ(s.tissue.material.young, 1e7);
+  EXPECT_EQ(s.tissue.material.poisson, 0.4);
+  EXPECT_EQ(s.tissue.geometry.box.max, Vec3(0.04, 0.02, 0.02));
+  EXPECT_EQ(s.tissue.cells, Vec3i(8, 4, 4));
+  ASSERT_EQ(s.tissue.dirichlet.size(), 1u);
+}
+
+TEST(Scene, OverridesReachNestedKeysAndListItems) {
+  const Scene s = loadScene(kPhantom, {"tissue.grid.cells=[16,8,8]", "tissue.material.poisson=0.45",
+                                       "tissue.dirichlet.0.displacement=[0,0,1e-3]", "solver.linear.method=direct",
+                                       "probes.0.name=entry", "time.dt=2e-3"});
+  EXPECT_EQ(s.tissue.cells, Vec3i(16, 8, 8));
+  EXPECT_EQ(s.tissue.material.poisson, 0.45);
+  EXPECT_EQ(s.tissue.dirichlet[0].displacement, Vec3(0, 0, 1e-3));
+  EXPECT_EQ(s.solver.linear.method, LinearSolverSettings::Method::Direct);
+  EXPECT_EQ(s.probes[0].name, "entry");
+  EXPECT_EQ(s.dt, 2e-3);
+  EXPECT_EQ(s.numSteps(), 50);
+  // Overrides can add optional keys that the file does not have.
+  const Scene t = loadScene(kPhantom, {"tissue.body_force=[1,2,3]"});
+  EXPECT_EQ(t.tissue.body_force, Vec3(1, 2, 3));
+}
+
+TEST(Scene, BadOverridesAreInputErrors) {
+  for (const char* o : {"tissue.grid.cells", "=3", "tissue..grid=1", "tissue.dirichlet.5.displacement=[0,0,0]",
+                        "tissue.dirichlet.x.displacement=[0,0,0]", "time.dt.x=1", "time.dt=[1"}) {
+    SCOPED_TRACE(o);
+    EXPECT_THROW(loadScene(kPhantom, {o}), InputError);
+  }
+  try {
+    loadScene(kPhantom, {"tissue.material.young=-5"});
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_EQ(e.key(), "tissue.material.young");
+    EXPECT_NE(std::string(e.what()).find("must be > 0"), std::string::npos);
+  }
+}
+
+TEST(Scene, MissingFileIsAnInputError) {
+  EXPECT_THROW(loadScene(kSrc + "/config/scenes/does_not_exist.yaml"), InputError);
+}
+
+TEST(Scene, EveryBadSceneIsRejectedNamingItsKey) {
+  int count = 0;
+  for (const auto& e : fs::directory_iterator(kSrc + "/test/data/bad_scenes")) {
+    SCOPED_TRACE(e.path().string());
+    const std::string key = expectedKey(e.path());
+    try {
+      Simulation sim(loadScene(e.path().string()));
+      ADD_FAILURE() << "accepted";
+    } catch (const InputError& err) {
+      EXPECT_EQ(err.key().substr(0, key.size()), key) << err.what();
+      EXPECT_EQ(err.file(), e.path().string());
+      EXPECT_FALSE(err.problem().empty());
+    }
+    ++count;
+  }
+  EXPECT_GE(count, 20);
+}
+
+TEST(Scene, GridMemoryEstimateIsMonotoneAndSane) {
+  EXPECT_LT(estimateSolverBytes({32, 16, 16}), 1e9);  // the fine phantom fits easily
+  EXPECT_GT(estimateSolverBytes({400, 200, 200}), 64e9);
+  EXPECT_LT(estimateSolverBytes({8, 4, 4}), estimateSolverBytes({16, 8, 8}));
+}
