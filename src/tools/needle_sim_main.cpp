@@ -97,6 +97,18 @@ int checkCommand(const std::string& scene_path, const std::vector<std::string>& 
 
 }  // namespace
 
+// roslaunch appends "__name:=..." and "__log:=..." to a node's arguments; they mean nothing
+// to this tool, so they are dropped (as ros::removeROSArgs would) before parsing.
+std::vector<std::string> withoutRosArgs(int argc, char** argv) {
+  std::vector<std::string> args;
+  for (int i = argc - 1; i >= 1; --i) {  // CLI11 takes the arguments in reverse order
+    const std::string a = argv[i];
+    if (a.rfind("__", 0) == 0 && a.find(":=") != std::string::npos) continue;
+    args.push_back(a);
+  }
+  return args;
+}
+
 int main(int argc, char** argv) {
   CLI::App app{"needle_sim: real-time, error-controlled FE simulation of needle insertion (headless driver)"};
   app.require_subcommand(1);
@@ -126,7 +138,8 @@ int main(int argc, char** argv) {
   bench->add_option("--json", bench_opts.json_out, "also write the results as JSON to this file");
 
   try {
-    app.parse(argc, argv);
+    auto args = withoutRosArgs(argc, argv);
+    app.parse(args);
   } catch (const CLI::ParseError& e) {
     const int code = app.exit(e);
     return code == 0 ? 0 : kExitInput;

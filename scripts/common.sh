@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# Shared by run.sh and test.sh: install what is missing (Debian packages only), then
+# configure and build the catkin package in ./build. Idempotent: quick when all is there.
+set -eo pipefail
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+BUILD="${NEEDLE_SIM_BUILD_DIR:-$ROOT/build}"
+
+# Everything the package needs from Debian (package.xml declares the same dependencies).
+PACKAGES=(
+  # build tools and ROS 1 from Debian (see DESIGN.md §5)
+  cmake g++ catkin ros-core-dev rosbash libroscpp-dev ros-std-msgs ros-geometry-msgs
+  python3-rostest librostest-dev libgtest-dev
+  # core library
+  libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev libcli11-dev
+  # plots
+  python3-matplotlib python3-yaml
+)
+
+install_missing() {
+  local missing=()
+  for p in "${PACKAGES[@]}"; do
+    if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
+      missing+=("$p")
+    fi
+  done
+  if ((${#missing[@]})); then
+    echo "needle_sim: installing missing packages: ${missing[*]}" >&2
+    local SUDO=""
+    if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+    export DEBIAN_FRONTEND=noninteractive
+    $SUDO apt-get update -q >&2
+    $SUDO apt-get install -y -q --no-install-recommends "${missing[@]}" >&2
+  fi
+}
+
+build() {
+  # A pyenv python3 first on PATH breaks catkin: always name Debian's interpreter.
+  if [ ! -f "$BUILD/CMakeCache.txt" ]; then
+    cmake -S "$ROOT" -B "$BUILD" -DCMAKE_BUILD_TYPE=Release \
+      -DCATKIN_DEVEL_PREFIX="$BUILD/devel" \
+      -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
+  fi
+  cmake --build "$BUILD" -j"$(nproc)" >&2
+  cmake --build "$BUILD" -j"$(nproc)" --target tests >&2
+}
+
+NEEDLE_SIM="$BUILD/devel/lib/needle_sim/needle_sim"
