@@ -94,8 +94,6 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                    {"assemble", pj(percentiles(assemble_ms_))},
                    {"factor", pj(percentiles(factor_ms_))},
                    {"solve", pj(percentiles(solve_ms_))}};
-  const auto& ls = body.model();
-  (void)ls;
   j["solver"] = {{"method", scene.solver.linear.method == LinearSolverSettings::Method::Pcg ? "pcg" : "direct"},
                  {"linear_iterations_total", linear_iterations_},
                  {"linear_iterations_max", max_linear_iterations_},
