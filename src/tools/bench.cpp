@@ -27,7 +27,7 @@ struct Timing {
 Timing timeScene(const Scene& scene, int warmup, int steps) {
   Simulation sim(scene);
   Timing t;
-  t.dofs = sim.tissue().mesh().numDofs();
+  t.dofs = sim.numDofs();
   std::vector<double> total, forces, assemble, factor, solve;
   long iterations = 0;
   for (int k = 0; k < warmup + steps; ++k) {

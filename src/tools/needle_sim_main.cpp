@@ -47,8 +47,8 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   }
   const long n = scene.numSteps();
   if (!quiet)
-    std::cerr << "needle_sim: scene '" << scene.name << "': " << sim->tissue().mesh().numDofs() << " dofs, "
-              << sim->tissue().mesh().numElements() << " elements, " << n << " steps\n";
+    std::cerr << "needle_sim: scene '" << scene.name << "': " << sim->numDofs() << " dofs, " << sim->numElements()
+              << " elements, " << n << " steps\n";
   using clock = std::chrono::steady_clock;
   const auto t_start = clock::now();
   auto t_report = t_start;
@@ -78,6 +78,12 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
     const Vec3 u = sim->probeDisplacement(i);
     std::printf("  probe %-6s u = (% .6e, % .6e, % .6e) m\n", sim->probeName(i).c_str(), u[0], u[1], u[2]);
   }
+  for (int i = 0; i < sim->numNeedles(); ++i) {
+    const auto& nd = sim->needle(i);
+    const Vec3 t = nd.tipPosition(), f = nd.baseForce(), m = nd.baseMoment();
+    std::printf("  needle %-6s tip = (% .6e, % .6e, % .6e) m, base force = (% .3e, % .3e, % .3e) N, moment = (% .3e, % .3e, % .3e) N m\n",
+                nd.name().c_str(), t[0], t[1], t[2], f[0], f[1], f[2], m[0], m[1], m[2]);
+  }
   std::printf("results: %s\n         %s\n", rec->summaryPath().c_str(), rec->timeseriesPath().c_str());
   return 0;
 }
@@ -86,8 +92,8 @@ int checkCommand(const std::string& scene_path, const std::vector<std::string>& 
   try {
     const Scene scene = loadScene(scene_path, sets);
     Simulation sim(scene);
-    std::printf("%s: ok (%d dofs, %d elements, %ld steps)\n", scene_path.c_str(), sim.tissue().mesh().numDofs(),
-                sim.tissue().mesh().numElements(), scene.numSteps());
+    std::printf("%s: ok (%d dofs, %d elements, %ld steps)\n", scene_path.c_str(), sim.numDofs(), sim.numElements(),
+                scene.numSteps());
     return 0;
   } catch (const InputError& e) {
     std::cerr << "needle_sim: invalid input: " << e.what() << '\n';

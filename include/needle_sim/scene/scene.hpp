@@ -66,6 +66,31 @@ struct SolverScene {
   LinearSolverSettings linear;
 };
 
+struct NeedleMotionKey {
+  double t = 0;
+  Vec3 position = Vec3::Zero();
+  Vec3 direction = Vec3::UnitX();
+  double roll = 0;
+};
+
+// A needle (or cannula, electrode): a corotational beam whose base follows `motion`.
+struct NeedleScene {
+  std::string name = "needle";
+  std::string key = "needle";  // where it came from in the file, for messages
+  double length = 0.1;
+  double radius = 1e-3;
+  double inner_radius = 0.0;
+  double young = 2e11, poisson = 0.3, density = 8000;
+  int elements = 20;
+  Vec3 base_position = Vec3::Zero();
+  Vec3 base_direction = Vec3::UnitX();
+  double base_roll = 0;
+  std::vector<NeedleMotionKey> motion;  // strictly increasing t
+  Vec3 tip_force = Vec3::Zero();        // external load at the tip [N], e.g. for verification
+  Vec3 tip_moment = Vec3::Zero();       // [N m]
+  Vec3 gravity = Vec3::Zero();          // [m/s^2]
+};
+
 struct ProbeScene {
   std::string name;
   Vec3 point = Vec3::Zero();
@@ -78,7 +103,9 @@ struct Scene {
   double dt = 0.01;
   double duration = 1.0;
   SolverScene solver;
+  bool has_tissue = true;
   TissueScene tissue;
+  std::vector<NeedleScene> needles;
   std::vector<ProbeScene> probes;
 
   long numSteps() const;

@@ -8,6 +8,7 @@
 
 #include "needle_sim/fem/embedded_point.hpp"
 #include "needle_sim/scene/scene.hpp"
+#include "needle_sim/sim/needle_body.hpp"
 #include "needle_sim/sim/tissue_body.hpp"
 
 namespace needle_sim {
@@ -27,7 +28,16 @@ class Simulation {
   const Scene& scene() const { return scene_; }
   long stepIndex() const { return step_; }  // steps done
   double time() const { return step_ * scene_.dt; }
+  bool hasTissue() const { return tissue_ != nullptr; }
   const TissueBody& tissue() const { return *tissue_; }
+  int numNeedles() const { return static_cast<int>(needles_.size()); }
+  const NeedleBody& needle(int i) const { return *needles_[i]; }
+  NeedleBody& needle(int i) { return *needles_[i]; }
+  // All DOFs of all bodies.
+  int numDofs() const;
+  int numElements() const;
+  double kineticEnergy() const;
+  double elasticEnergy() const;
   const StepStats& lastStats() const { return last_; }
 
   int numProbes() const { return static_cast<int>(probes_.size()); }
@@ -39,6 +49,7 @@ class Simulation {
 
   Scene scene_;
   std::unique_ptr<TissueBody> tissue_;
+  std::vector<std::unique_ptr<NeedleBody>> needles_;
   std::vector<EmbeddedPoint> probes_;
   long step_ = 0;
   StepStats last_;

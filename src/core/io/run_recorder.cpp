@@ -41,6 +41,12 @@ RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir) : sim_(s
     const auto& n = sim.probeName(i);
     csv_ << ',' << n << "_ux," << n << "_uy," << n << "_uz";
   }
+  for (int i = 0; i < sim.numNeedles(); ++i) {
+    const auto& n = sim.needle(i).name();
+    for (const char* q : {"tip_x", "tip_y", "tip_z", "dir_x", "dir_y", "dir_z", "base_fx", "base_fy", "base_fz",
+                          "base_mx", "base_my", "base_mz"})
+      csv_ << ',' << n << '_' << q;
+  }
   csv_ << '\n' << std::setprecision(10);
 }
 
@@ -55,13 +61,18 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
   newton_iterations_ += s.newton_iterations;
   max_linear_iterations_ = std::max(max_linear_iterations_, s.linear_iterations);
   max_linear_residual_ = std::max(max_linear_residual_, s.linear_residual);
-  csv_ << sim_.stepIndex() << ',' << sim_.time() << ',' << sim_.tissue().mesh().numDofs() << ',' << ms << ','
+  csv_ << sim_.stepIndex() << ',' << sim_.time() << ',' << sim_.numDofs() << ',' << ms << ','
        << s.forces_ms << ',' << s.assemble_ms << ',' << s.factor_ms << ',' << s.solve_ms << ','
        << s.linear_iterations << ',' << s.factorizations << ',' << s.newton_iterations << ','
-       << sim_.tissue().kineticEnergy();
+       << sim_.kineticEnergy();
   for (int i = 0; i < sim_.numProbes(); ++i) {
     const Vec3 u = sim_.probeDisplacement(i);
     csv_ << ',' << u[0] << ',' << u[1] << ',' << u[2];
+  }
+  for (int i = 0; i < sim_.numNeedles(); ++i) {
+    const auto& nd = sim_.needle(i);
+    for (const Vec3& v : {nd.tipPosition(), nd.tipDirection(), nd.baseForce(), nd.baseMoment()})
+      csv_ << ',' << v[0] << ',' << v[1] << ',' << v[2];
   }
   csv_ << '\n';
 }
@@ -69,7 +80,6 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
 void RunRecorder::writeSummary(const std::string& status, double wall_s, long fail_step, const std::string& message) {
   using nlohmann::json;
   const auto& scene = sim_.scene();
-  const auto& body = sim_.tissue();
   json j;
   j["status"] = status;
   if (status != "ok") {
@@ -78,10 +88,29 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
   }
   j["scene"] = {{"name", scene.name}, {"file", scene.file}, {"description", scene.description}};
   j["mode"] = scene.solver.mode == SolverScene::Mode::Dynamic ? "dynamic" : "static";
-  j["dofs"] = body.mesh().numDofs();
-  j["free_dofs"] = body.dofs().numFree();
-  j["nodes"] = body.mesh().numNodes();
-  j["elements"] = body.mesh().numElements();
+  j["dofs"] = sim_.numDofs();
+  j["elements"] = sim_.numElements();
+  if (sim_.hasTissue()) {
+    const auto& body = sim_.tissue();
+    j["tissue"] = {{"dofs", body.mesh().numDofs()},
+                   {"free_dofs", body.dofs().numFree()},
+                   {"nodes", body.mesh().numNodes()},
+                   {"elements", body.mesh().numElements()},
+                   {"inverted_elements", body.model().invertedElements()}};
+  }
+  json needles = json::object();
+  auto arr = [](const Vec3& v) { return json::array({v[0], v[1], v[2]}); };
+  for (int i = 0; i < sim_.numNeedles(); ++i) {
+    const auto& nd = sim_.needle(i);
+    needles[nd.name()] = {{"elements", nd.beam().numElements()},
+                          {"dofs", nd.numDofs()},
+                          {"tip", arr(nd.tipPosition())},
+                          {"direction", arr(nd.tipDirection())},
+                          {"base_force", arr(nd.baseForce())},
+                          {"base_moment", arr(nd.baseMoment())},
+                          {"elastic_energy", nd.elasticEnergy()}};
+  }
+  if (sim_.numNeedles()) j["needles"] = needles;
   j["steps"] = sim_.stepIndex();
   j["dt"] = scene.dt;
   j["time"] = sim_.time();
@@ -99,9 +128,8 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                  {"linear_iterations_max", max_linear_iterations_},
                  {"linear_residual_max", max_linear_residual_},
                  {"factorizations", factorizations_},
-                 {"newton_iterations_total", newton_iterations_},
-                 {"inverted_elements", body.model().invertedElements()}};
-  j["energy"] = {{"kinetic", body.kineticEnergy()}, {"elastic", body.elasticEnergy()}};
+                 {"newton_iterations_total", newton_iterations_}};
+  j["energy"] = {{"kinetic", sim_.kineticEnergy()}, {"elastic", sim_.elasticEnergy()}};
   json probes = json::object();
   for (int i = 0; i < sim_.numProbes(); ++i) {
     const Vec3 u = sim_.probeDisplacement(i);

@@ -308,6 +308,93 @@ void readTissue(const Reader& r, const YAML::Node& n, Scene& s) {
   }
 }
 
+Vec3 unitVector(const Reader& r, const YAML::Node& n, const std::string& key) {
+  const Vec3 d = r.vec3(n, key);
+  if (std::abs(d.norm() - 1) > 1e-6)
+    r.fail(key, "must be a unit vector, got length " + Reader::fmt(d.norm()));
+  return d;
+}
+
+NeedleScene readNeedle(const Reader& r, const YAML::Node& n, const std::string& p) {
+  r.checkKeys(n, p, {"name", "length", "radius", "inner_radius", "young", "poisson", "density", "elements", "base",
+                     "motion", "tip_force", "tip_moment", "gravity"});
+  static const std::regex ident("[A-Za-z0-9_]+");
+  NeedleScene s;
+  s.key = p;
+  if (auto v = r.child(n, p, "name", false)) {
+    s.name = r.string(v, p + ".name");
+    if (!std::regex_match(s.name, ident))
+      r.fail(p + ".name", "must be letters, digits and '_' only (it names CSV columns), got '" + s.name + "'");
+  }
+  s.length = r.positive(n, p, "length");
+  s.radius = r.positive(n, p, "radius");
+  if (auto v = r.child(n, p, "inner_radius", false)) {
+    s.inner_radius = r.number(v, p + ".inner_radius");
+    if (s.inner_radius < 0) r.fail(p + ".inner_radius", "must be >= 0");
+    if (s.inner_radius >= s.radius)
+      r.fail(p + ".inner_radius", "must be smaller than radius (" + Reader::fmt(s.inner_radius) +
+                                      " >= " + Reader::fmt(s.radius) + ")");
+  }
+  s.young = r.positive(n, p, "young");
+  s.poisson = r.number(r.child(n, p, "poisson", true), p + ".poisson");
+  if (!(s.poisson > -1 && s.poisson < 0.5)) r.fail(p + ".poisson", "must be in (-1, 0.5), got " + Reader::fmt(s.poisson));
+  s.density = r.positive(n, p, "density");
+  const long long el = r.integer(r.child(n, p, "elements", true), p + ".elements");
+  if (el < 1 || el > 100000) r.fail(p + ".elements", "must be in [1, 100000], got " + std::to_string(el));
+  s.elements = static_cast<int>(el);
+  const auto base = r.child(n, p, "base", true);
+  r.checkKeys(base, p + ".base", {"position", "direction", "roll"});
+  s.base_position = r.vec3(r.child(base, p + ".base", "position", true), p + ".base.position");
+  s.base_direction = unitVector(r, r.child(base, p + ".base", "direction", true), p + ".base.direction");
+  if (auto v = r.child(base, p + ".base", "roll", false)) s.base_roll = r.number(v, p + ".base.roll");
+  if (auto v = r.child(n, p, "tip_force", false)) s.tip_force = r.vec3(v, p + ".tip_force");
+  if (auto v = r.child(n, p, "tip_moment", false)) s.tip_moment = r.vec3(v, p + ".tip_moment");
+  if (auto v = r.child(n, p, "gravity", false)) s.gravity = r.vec3(v, p + ".gravity");
+  if (auto m = r.child(n, p, "motion", false)) {
+    if (!m.IsSequence()) r.fail(p + ".motion", "must be a list of {t, advance} or {t, position, direction}");
+    for (size_t i = 0; i < m.size(); ++i) {
+      const std::string q = p + ".motion[" + std::to_string(i) + "]";
+      r.checkKeys(m[i], q, {"t", "advance", "position", "direction", "roll"});
+      NeedleMotionKey k;
+      k.t = r.number(r.child(m[i], q, "t", true), q + ".t");
+      if (k.t < 0) r.fail(q + ".t", "must be >= 0");
+      if (i > 0 && !(k.t > s.motion.back().t))
+        r.fail(q + ".t", "times must increase strictly (" + Reader::fmt(k.t) + " after " + Reader::fmt(s.motion.back().t) + ")");
+      const bool adv = static_cast<bool>(m[i]["advance"]);
+      const bool pose = m[i]["position"] || m[i]["direction"];
+      if (adv == pose) r.fail(q, "give either 'advance' or 'position' and 'direction'");
+      if (adv) {
+        const double a = r.number(m[i]["advance"], q + ".advance");
+        k.position = s.base_position + a * s.base_direction;
+        k.direction = s.base_direction;
+      } else {
+        k.position = r.vec3(r.child(m[i], q, "position", true), q + ".position");
+        k.direction = unitVector(r, r.child(m[i], q, "direction", true), q + ".direction");
+      }
+      k.roll = s.base_roll;
+      if (auto v = r.child(m[i], q, "roll", false)) k.roll = r.number(v, q + ".roll");
+      s.motion.push_back(k);
+    }
+  }
+  return s;
+}
+
+void readNeedles(const Reader& r, const YAML::Node& root, Scene& s) {
+  if (root["needle"] && root["needles"]) r.fail("needles", "give either 'needle' or 'needles', not both");
+  if (auto n = r.child(root, "", "needle", false)) s.needles.push_back(readNeedle(r, n, "needle"));
+  if (auto list = r.child(root, "", "needles", false)) {
+    if (!list.IsSequence() || list.size() == 0) r.fail("needles", "must be a non-empty list of needles");
+    std::set<std::string> names;
+    for (size_t i = 0; i < list.size(); ++i) {
+      const std::string p = "needles[" + std::to_string(i) + "]";
+      if (!list[i].IsMap() || !list[i]["name"]) r.fail(p + ".name", "missing required key (several needles need names)");
+      NeedleScene ns = readNeedle(r, list[i], p);
+      if (!names.insert(ns.name).second) r.fail(p + ".name", "duplicate needle name '" + ns.name + "'");
+      s.needles.push_back(ns);
+    }
+  }
+}
+
 void readProbes(const Reader& r, const YAML::Node& n, Scene& s) {
   if (!n.IsSequence()) r.fail("probes", "must be a list of {name, point}");
   static const std::regex ident("[A-Za-z0-9_]+");
@@ -378,7 +465,7 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
   Reader r(file);
   if (!root.IsMap()) r.fail("", std::string("scene must be a YAML map at the top level, got ") + typeName(root));
   for (const auto& o : overrides) applyOverride(root, o, file);
-  r.checkKeys(root, "", {"name", "description", "time", "solver", "tissue", "probes"});
+  r.checkKeys(root, "", {"name", "description", "time", "solver", "tissue", "needle", "needles", "probes"});
   Scene s;
   s.file = file;
   if (auto v = r.child(root, "", "name", false)) s.name = r.string(v, "name");
@@ -389,9 +476,15 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
   if (auto v = r.child(root, "", "description", false)) s.description = r.string(v, "description");
   readTime(r, r.child(root, "", "time", true), s);
   if (auto v = r.child(root, "", "solver", false)) readSolver(r, v, s);
-  readTissue(r, r.child(root, "", "tissue", true), s);
-  if (auto v = r.child(root, "", "probes", false)) readProbes(r, v, s);
-  if (s.solver.mode == SolverScene::Mode::Static && s.tissue.dirichlet.empty())
+  if (auto t = r.child(root, "", "tissue", false)) readTissue(r, t, s);
+  else s.has_tissue = false;
+  readNeedles(r, root, s);
+  if (!s.has_tissue && s.needles.empty()) r.fail("tissue", "missing: a scene needs a tissue, a needle, or both");
+  if (auto v = r.child(root, "", "probes", false)) {
+    if (!s.has_tissue) r.fail("probes", "probes are tissue points, but the scene has no tissue");
+    readProbes(r, v, s);
+  }
+  if (s.has_tissue && s.solver.mode == SolverScene::Mode::Static && s.tissue.dirichlet.empty())
     r.fail("tissue.dirichlet", "static mode needs Dirichlet conditions that hold the body (none given)");
   return s;
 }

@@ -1,5 +1,6 @@
 #include "needle_sim/sim/simulation.hpp"
 
+#include <algorithm>
 #include <sstream>
 
 #include "needle_sim/core/error.hpp"
@@ -13,6 +14,8 @@ HexMesh buildTissueMesh(const TissueScene& t) {
 }
 
 Simulation::Simulation(const Scene& scene) : scene_(scene) {
+  for (const auto& n : scene.needles) needles_.push_back(std::make_unique<NeedleBody>(n, scene.solver));
+  if (!scene.has_tissue) return;
   HexMesh mesh;
   try {
     mesh = buildTissueMesh(scene.tissue);
@@ -38,7 +41,41 @@ Vec3 Simulation::probeDisplacement(int i) const {
   return ep.interpolate(tissue_->mesh(), tissue_->positions()) - ep.rest;
 }
 
+int Simulation::numDofs() const {
+  int n = tissue_ ? tissue_->mesh().numDofs() : 0;
+  for (const auto& nd : needles_) n += nd->numDofs();
+  return n;
+}
+
+int Simulation::numElements() const {
+  int n = tissue_ ? tissue_->mesh().numElements() : 0;
+  for (const auto& nd : needles_) n += nd->beam().numElements();
+  return n;
+}
+
+double Simulation::kineticEnergy() const {
+  double e = tissue_ ? tissue_->kineticEnergy() : 0;
+  for (const auto& nd : needles_) e += nd->kineticEnergy();
+  return e;
+}
+
+double Simulation::elasticEnergy() const {
+  double e = tissue_ ? tissue_->elasticEnergy() : 0;
+  for (const auto& nd : needles_) e += nd->elasticEnergy();
+  return e;
+}
+
 void Simulation::checkState() const {
+  for (const auto& nd : needles_) {
+    for (int i = 0; i < nd->beam().numNodes(); ++i)
+      if (!nd->state().p[i].allFinite() || !nd->state().q[i].coeffs().allFinite())
+        throw NumericalError(step_, "needle '" + nd->name() + "': non-finite state at step " + std::to_string(step_));
+    const double reach = (nd->tipPosition() - nd->state().p[0]).norm();
+    if (reach > 2 * nd->beam().length())
+      throw NumericalError(step_, "needle '" + nd->name() + "' diverged at step " + std::to_string(step_) +
+                                      ": tip " + std::to_string(reach) + " m from the base");
+  }
+  if (!tissue_) return;
   const VecX& x = tissue_->positions();
   const VecX& v = tissue_->velocities();
   if (!x.allFinite() || !v.allFinite())
@@ -52,8 +89,21 @@ void Simulation::checkState() const {
 const StepStats& Simulation::step() {
   const long k = step_ + 1;
   try {
-    last_ = scene_.solver.mode == SolverScene::Mode::Dynamic ? tissue_->stepDynamic(scene_.dt)
-                                                             : tissue_->solveStatic();
+    const bool dynamic = scene_.solver.mode == SolverScene::Mode::Dynamic;
+    last_ = StepStats{};
+    auto add = [&](const StepStats& s) {
+      last_.forces_ms += s.forces_ms;
+      last_.assemble_ms += s.assemble_ms;
+      last_.factor_ms += s.factor_ms;
+      last_.solve_ms += s.solve_ms;
+      last_.linear_iterations += s.linear_iterations;
+      last_.factorizations += s.factorizations;
+      last_.linear_residual = std::max(last_.linear_residual, s.linear_residual);
+      last_.newton_iterations += s.newton_iterations;
+      last_.newton_residual = std::max(last_.newton_residual, s.newton_residual);
+    };
+    if (tissue_) add(dynamic ? tissue_->stepDynamic(scene_.dt) : tissue_->solveStatic());
+    for (auto& nd : needles_) add(dynamic ? nd->stepDynamic(time(), scene_.dt) : nd->solveStatic(k * scene_.dt));
   } catch (const NumericalError& e) {
     throw NumericalError(k, std::string(e.what()) + " (step " + std::to_string(k) + ")");
   }

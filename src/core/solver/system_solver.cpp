@@ -15,7 +15,7 @@ double msSince(std::chrono::steady_clock::time_point t0) {
 
 SystemSolver::SystemSolver(const CorotationalHexModel& model, const DofMap& dofs,
                            const LinearSolverSettings& s)
-    : model_(model), dofs_(dofs), settings_(s), assembler_(model.mesh(), dofs), chol_(s.ordering) {}
+    : model_(model), dofs_(dofs), settings_(s), assembler_(dofs.numFree(), 24, hexElementDofs(model.mesh(), dofs)), chol_(s.ordering) {}
 
 void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const {
   dofs_.scatter(v, full_in_);
@@ -31,7 +31,7 @@ void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, Linea
   hex8::Mat24 Ke;
   for (int e = 0; e < model_.numElements(); ++e) {
     model_.elementStiffness(e, Ke);
-    assembler_.addElement(e, Ke, c_k);
+    assembler_.addElement(e, Ke.data(), c_k);
   }
   if (c_m != 0.0) assembler_.addDiagonal(mass_free, c_m);
   st.assemble_ms += msSince(t0);

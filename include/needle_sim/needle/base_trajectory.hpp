@@ -1,0 +1,44 @@
+#pragma once
+// The commanded pose of a needle base over time: keyframes (t, position, axis direction,
+// roll about the axis) interpolated piecewise-linearly (position, roll) and by slerp
+// (direction); held constant before the first and after the last keyframe. The ROS node
+// appends commands through add() as they arrive; scene files give them up front.
+#include <Eigen/Geometry>
+#include <vector>
+
+#include "needle_sim/core/types.hpp"
+
+namespace needle_sim {
+
+struct BasePose {
+  Vec3 position = Vec3::Zero();
+  Vec3 direction = Vec3::UnitX();  // unit needle axis
+  double roll = 0.0;               // radians about the axis
+};
+
+class BaseTrajectory {
+ public:
+  // rest: the base pose of the needle's rest configuration, also the pose at t = 0 unless
+  // a keyframe says otherwise.
+  explicit BaseTrajectory(const BasePose& rest);
+
+  // Appends a keyframe; t must exceed the last keyframe's time (throws std::invalid_argument).
+  void add(double t, const BasePose& pose);
+  // Commanded pose at time t.
+  BasePose pose(double t) const;
+  // Rotation carrying the rest base frame to the commanded one: the minimal rotation from
+  // the rest axis to the commanded axis, after a roll about the rest axis.
+  Eigen::Quaterniond orientation(const BasePose& p) const;
+  const BasePose& rest() const { return rest_; }
+  size_t size() const { return keys_.size(); }
+
+ private:
+  struct Key {
+    double t;
+    BasePose pose;
+  };
+  BasePose rest_;
+  std::vector<Key> keys_;
+};
+
+}  // namespace needle_sim
