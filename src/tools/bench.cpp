@@ -1,5 +1,6 @@
 #include "bench.hpp"
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <fstream>
@@ -57,8 +58,37 @@ Timing timeScene(const Scene& scene, int warmup, int steps) {
 
 }  // namespace
 
+// Scenes without tissue (needles only): one row, times in microseconds.
+int benchNeedles(const BenchOptions& o, const Scene& scene) {
+  const int steps = std::max(o.steps, 1000);
+  const Timing t = timeScene(scene, std::max(o.warmup, 10), steps);
+  std::printf("needle_sim bench: %s, %d timed steps (times in microseconds)\n", o.scene.c_str(), steps);
+  std::printf("| scene | needles | elements | DOFs | step median | step mean | step p95 | forces+tangent | assembly | factor | solve |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|\n");
+  int elements = 0;
+  for (const auto& n : scene.needles) elements += n.elements;
+  std::printf("| %s | %zu | %d | %d | %.1f | %.1f | %.1f | %.1f | %.1f | %.1f | %.1f |\n", scene.name.c_str(),
+              scene.needles.size(), elements, t.dofs, 1e3 * t.total.median, 1e3 * t.total.mean, 1e3 * t.total.p95,
+              1e3 * t.forces.median, 1e3 * t.assemble.median, 1e3 * t.factor.median, 1e3 * t.solve.median);
+  if (!o.json_out.empty()) {
+    std::ofstream f(o.json_out);
+    f << std::setw(2)
+      << nlohmann::json{{"scene", scene.name},
+                        {"dofs", t.dofs},
+                        {"step_us", {{"median", 1e3 * t.total.median}, {"mean", 1e3 * t.total.mean}, {"p95", 1e3 * t.total.p95}}}}
+      << '\n';
+  }
+  return 0;
+}
+
 int benchCommand(const BenchOptions& o) {
   static const std::regex cells_re("([0-9]+)x([0-9]+)x([0-9]+)");
+  {
+    std::vector<std::string> sets = o.sets;
+    sets.push_back("solver.mode=dynamic");
+    const Scene scene = loadScene(o.scene, sets);
+    if (!scene.has_tissue) return benchNeedles(o, scene);
+  }
   nlohmann::json out = nlohmann::json::array();
   std::printf("needle_sim bench: %s, %d timed steps after %d warm-up steps (times in ms)\n", o.scene.c_str(), o.steps,
               o.warmup);

@@ -14,6 +14,7 @@
 #include <filesystem>
 #include <iostream>
 
+#include "needle_sim/core/denormals.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/io/run_recorder.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
@@ -116,6 +117,7 @@ std::vector<std::string> withoutRosArgs(int argc, char** argv) {
 }
 
 int main(int argc, char** argv) {
+  flushDenormalsToZero();
   CLI::App app{"needle_sim: real-time, error-controlled FE simulation of needle insertion (headless driver)"};
   app.require_subcommand(1);
 
@@ -133,7 +135,8 @@ int main(int argc, char** argv) {
   check->add_option("--set", sets, "override a scene value: key.path=value (repeatable)");
 
   BenchOptions bench_opts;
-  auto* bench = app.add_subcommand("bench", "time dynamic steps of the phantom meshes (median, split by phase)");
+  auto* bench = app.add_subcommand("bench", "time dynamic steps of a scene: the tissue at several grids (default: the "
+                                           "phantom), or a needles-only scene (median, split by phase)");
   bench->add_option("--scene", bench_opts.scene, "scene to time")->capture_default_str();
   bench->add_option("--cells", bench_opts.cells, "grids to time, e.g. 8x4x4 16x8x8")->capture_default_str();
   bench->add_option("--steps", bench_opts.steps, "timed steps per grid")->capture_default_str();
