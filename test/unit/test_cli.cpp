@@ -110,3 +110,28 @@ TEST(Cli, UsageErrorsExitWith2) {
   EXPECT_EQ(runTool("run '" + kSrc + "/config/scenes/phantom_8x4x4.yaml' --out '" + out.string() + "' --set nonsense").status, 2);
   EXPECT_EQ(runTool("check '" + kSrc + "/config/scenes/phantom_8x4x4.yaml'").status, 0);
 }
+
+TEST(Cli, NeedleRunWritesTipBaseReactionAndCenterline) {
+  const fs::path out = freshDir("needle");
+  const Result r = runTool("run '" + kSrc + "/config/scenes/needle_free_motion.yaml' --out '" + out.string() +
+                           "' --set time.duration=0.05 --quiet --centerline");
+  ASSERT_EQ(r.status, 0) << r.err;
+  std::ifstream in(out / "summary.json");
+  const json j = json::parse(in);
+  EXPECT_EQ(j["dofs"], 126);
+  const auto& n = j["needles"]["needle"];
+  EXPECT_EQ(n["elements"], 20);
+  EXPECT_EQ(n["centerline"].size(), 21u);
+  EXPECT_NEAR(n["direction"][0].get<double>(), 1.0, 1e-6);
+  EXPECT_GT(n["base_force"][2].get<double>(), 0.0);  // the holder carries the weight
+  std::ifstream csv(out / "timeseries.csv");
+  std::string header;
+  std::getline(csv, header);
+  for (const char* col : {"needle_tip_x", "needle_dir_z", "needle_base_fx", "needle_base_mz"})
+    EXPECT_NE(header.find(col), std::string::npos) << col;
+  std::ifstream cl(out / "centerline.csv");
+  std::string line;
+  int rows = -1;
+  while (std::getline(cl, line)) ++rows;
+  EXPECT_EQ(rows, 50 * 21);
+}

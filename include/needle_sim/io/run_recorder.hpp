@@ -4,7 +4,8 @@
 //                       counters, NAME_ux, NAME_uy, NAME_uz per probe)
 //   DIR/summary.json    scene, sizes, step-time statistics, solver statistics, final probes
 // The CSV is written to timeseries.partial.csv while running and renamed only on success;
-// a failed run leaves summary.json with "status": "numerical_failure" and the step, so
+// With --centerline, DIR/centerline.csv holds every needle node per step (step, t, needle,
+// node, s = rest arc length from the base, x, y, z). A failed run leaves summary.json with "status": "numerical_failure" and the step, so
 // nothing half-done looks like a result.
 #include <fstream>
 #include <string>
@@ -22,7 +23,8 @@ Percentiles percentiles(std::vector<double> v);
 class RunRecorder {
  public:
   // Creates DIR if needed and removes results of an earlier run there.
-  RunRecorder(const Simulation& sim, const std::string& dir);
+  // centerline: also write DIR/centerline.csv, every needle node at every step.
+  RunRecorder(const Simulation& sim, const std::string& dir, bool centerline = false);
   void recordStep(const StepStats& s, double step_ms);
   // Finalises: success writes summary.json and renames the CSV.
   void finish(double wall_s);
@@ -37,7 +39,7 @@ class RunRecorder {
 
   const Simulation& sim_;
   std::string dir_;
-  std::ofstream csv_;
+  std::ofstream csv_, centerline_;
   std::vector<double> step_ms_, forces_ms_, assemble_ms_, factor_ms_, solve_ms_;
   long linear_iterations_ = 0, factorizations_ = 0, newton_iterations_ = 0;
   int max_linear_iterations_ = 0;

@@ -28,11 +28,17 @@ Percentiles percentiles(std::vector<double> v) {
   return p;
 }
 
-RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir) : sim_(sim), dir_(dir) {
+RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, bool centerline) : sim_(sim), dir_(dir) {
   std::error_code ec;
   fs::create_directories(dir_, ec);
   if (ec) throw std::runtime_error("cannot create output directory '" + dir_ + "': " + ec.message());
-  for (const char* f : {"summary.json", "timeseries.csv", "timeseries.partial.csv"}) fs::remove(fs::path(dir_) / f, ec);
+  for (const char* f : {"summary.json", "timeseries.csv", "timeseries.partial.csv", "centerline.csv",
+                        "centerline.partial.csv"})
+    fs::remove(fs::path(dir_) / f, ec);
+  if (centerline && sim.numNeedles() > 0) {
+    centerline_.open(fs::path(dir_) / "centerline.partial.csv");
+    centerline_ << "step,t,needle,node,s,x,y,z\n" << std::setprecision(10);
+  }
   csv_.open(fs::path(dir_) / "timeseries.partial.csv");
   if (!csv_) throw std::runtime_error("cannot write to output directory '" + dir_ + "'");
   csv_ << "step,t,dofs,step_ms,forces_ms,assemble_ms,factor_ms,solve_ms,linear_iterations,factorizations,"
@@ -73,6 +79,12 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
     const auto& nd = sim_.needle(i);
     for (const Vec3& v : {nd.tipPosition(), nd.tipDirection(), nd.baseForce(), nd.baseMoment()})
       csv_ << ',' << v[0] << ',' << v[1] << ',' << v[2];
+    if (centerline_.is_open())
+      for (int k = 0; k < nd.beam().numNodes(); ++k) {
+        const Vec3& p = nd.state().p[k];
+        centerline_ << sim_.stepIndex() << ',' << sim_.time() << ',' << nd.name() << ',' << k << ','
+                    << k * nd.beam().elementLength() << ',' << p[0] << ',' << p[1] << ',' << p[2] << '\n';
+      }
   }
   csv_ << '\n';
 }
@@ -109,6 +121,9 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                           {"base_force", arr(nd.baseForce())},
                           {"base_moment", arr(nd.baseMoment())},
                           {"elastic_energy", nd.elasticEnergy()}};
+    json line = json::array();
+    for (const auto& p : nd.state().p) line.push_back(arr(p));
+    needles[nd.name()]["centerline"] = line;
   }
   if (sim_.numNeedles()) j["needles"] = needles;
   j["steps"] = sim_.stepIndex();
@@ -149,11 +164,16 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
 void RunRecorder::finish(double wall_s) {
   csv_.close();
   fs::rename(fs::path(dir_) / "timeseries.partial.csv", fs::path(dir_) / "timeseries.csv");
+  if (centerline_.is_open()) {
+    centerline_.close();
+    fs::rename(fs::path(dir_) / "centerline.partial.csv", fs::path(dir_) / "centerline.csv");
+  }
   writeSummary("ok", wall_s, -1, "");
 }
 
 void RunRecorder::fail(double wall_s, long step, const std::string& message) {
   csv_.close();
+  centerline_.close();
   writeSummary("numerical_failure", wall_s, step, message);
 }
 
