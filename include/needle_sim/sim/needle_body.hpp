@@ -36,8 +36,18 @@ class NeedleBody {
 
   // Places the needle rigidly at the commanded pose of time t (no internal force).
   void placeAt(double t);
-  // Advances from time t to t + h.
+  // Advances from time t to t + h: freeMotion + (constraint corrections) + commit.
   StepStats stepDynamic(double t, double h);
+  // Solves the implicit Euler system without constraints (base on its command); nothing
+  // moves until commit().
+  StepStats freeMotion(double t, double h);
+  // Velocity change of all DOFs (6 per node) after freeMotion, plus corrections.
+  const VecX& velocityChange() const { return dv_; }
+  const DofMap& dofs() const { return dofs_; }
+  void addVelocityChangeFree(const VecX& d);
+  void commit(double t, double h);
+  // X = A^-1 E_S for the given free DOFs, from this step's factorisation.
+  void complianceColumns(const std::vector<int>& free_dofs, Eigen::MatrixXd& X) const;
   // Equilibrium with the base at the pose commanded for time t.
   StepStats solveStatic(double t);
 
@@ -69,6 +79,9 @@ class NeedleBody {
   SymmetricAssembler assembler_;
   CholmodSolver chol_;
   std::vector<Mat12> Ke_;
+  VecX dv_;
+  Vec3 base_target_p_ = Vec3::Zero();
+  Eigen::Quaterniond base_target_q_ = Eigen::Quaterniond::Identity();
   Vec3 base_force_ = Vec3::Zero(), base_moment_ = Vec3::Zero();
 };
 

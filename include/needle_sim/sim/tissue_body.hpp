@@ -47,7 +47,19 @@ class TissueBody {
   const VecX& externalForce() const { return f_ext_; }
   const VecX& lumpedMass() const { return mass_; }  // per DOF (3n)
 
+  // One dynamic step = freeMotion + (constraint corrections) + commit.
   StepStats stepDynamic(double h);
+  // Solves the implicit Euler system without constraints; the velocity change is kept
+  // (freeVelocityChange) and nothing moves until commit().
+  StepStats freeMotion(double h);
+  // Velocity change over the free DOFs (after freeMotion, plus corrections).
+  const VecX& velocityChangeFree() const { return dv_free_; }
+  void addVelocityChangeFree(const VecX& d) { dv_free_ += d; }
+  // Applies the velocity change: v += dv, x += h v.
+  void commit(double h);
+  // Columns of the inverse system matrix of the last solve for the given free DOFs:
+  // X = A^-1 E_S (n_free x |S|), from the body's factorisation (the constraint compliance).
+  void complianceColumns(const std::vector<int>& free_dofs, Eigen::MatrixXd& X) const;
   // Newton to equilibrium; throws NumericalError when it does not converge.
   StepStats solveStatic();
 

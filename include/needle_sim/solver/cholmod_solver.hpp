@@ -8,6 +8,8 @@
 // Eigen compressed-column matrix, viewed without copying (stype = 1).
 #include <string>
 
+#include <Eigen/Core>
+
 #include "needle_sim/core/types.hpp"
 
 struct cholmod_common_struct;
@@ -32,6 +34,8 @@ class CholmodSolver {
   bool factorize(const SparseMatrix& upper);
   // x = A^{-1} b with the current factor. Not thread-safe (reuses workspaces).
   void solve(const VecX& b, VecX& x) const;
+  // X = A^{-1} B for several right-hand sides at once (one supernodal sweep).
+  void solve(const Eigen::MatrixXd& B, Eigen::MatrixXd& X) const;
 
   bool analyzed() const { return factor_ != nullptr; }
   bool factored() const { return factored_; }

@@ -103,6 +103,12 @@ void NeedleBody::updateReaction(const VecX& base_accel) {
 }
 
 StepStats NeedleBody::stepDynamic(double t, double h) {
+  StepStats st = freeMotion(t, h);
+  commit(t, h);
+  return st;
+}
+
+StepStats NeedleBody::freeMotion(double t, double h) {
   StepStats st;
   auto t0 = std::chrono::steady_clock::now();
   const double alpha = settings_.rayleigh_mass, beta = settings_.rayleigh_stiffness;
@@ -110,12 +116,10 @@ StepStats NeedleBody::stepDynamic(double t, double h) {
   const int n = beam_.numDofs(), ne = beam_.numElements();
 
   // Base: the velocity that lands exactly on the commanded pose at t + h.
-  Vec3 pc;
-  Eigen::Quaterniond qc;
-  basePoseAt(t + h, pc, qc);
-  VecX dv = VecX::Zero(n);
-  dv.segment<3>(0) = (pc - state_.p[0]) / h - v_.segment<3>(0);
-  dv.segment<3>(3) = quaternionLog(qc * state_.q[0].conjugate()) / h - v_.segment<3>(3);
+  basePoseAt(t + h, base_target_p_, base_target_q_);
+  dv_ = VecX::Zero(n);
+  dv_.segment<3>(0) = (base_target_p_ - state_.p[0]) / h - v_.segment<3>(0);
+  dv_.segment<3>(3) = quaternionLog(base_target_q_ * state_.q[0].conjugate()) / h - v_.segment<3>(3);
 
   // rhs = h (f - (h + beta) K v - alpha M v) - c_k K dv_base
   VecX rhs;
@@ -126,7 +130,7 @@ StepStats NeedleBody::stepDynamic(double t, double h) {
   for (int e = 0; e < ne; ++e) {
     beam_.elementStiffness(state_, e, Ke_[e]);
     Vec12 w = (-h * (h + beta)) * v_.segment<12>(6 * e);
-    if (e == 0) w.head<6>() -= c_k * dv.head<6>();
+    if (e == 0) w.head<6>() -= c_k * dv_.head<6>();
     rhs.segment<12>(6 * e).noalias() += Ke_[e] * w;
   }
   VecX b, dv_free;
@@ -137,19 +141,32 @@ StepStats NeedleBody::stepDynamic(double t, double h) {
     throw NumericalError(-1, "needle '" + name_ + "': system matrix is not positive definite");
   t0 = std::chrono::steady_clock::now();
   chol_.solve(b, dv_free);
-  for (int k = 0; k < dofs_.numFree(); ++k) dv[dofs_.freeToFull()[k]] = dv_free[k];
-  v_ += dv;
+  for (int k = 0; k < dofs_.numFree(); ++k) dv_[dofs_.freeToFull()[k]] = dv_free[k];
+  st.solve_ms = msSince(t0);
+  return st;
+}
+
+void NeedleBody::addVelocityChangeFree(const VecX& d) {
+  for (int k = 0; k < dofs_.numFree(); ++k) dv_[dofs_.freeToFull()[k]] += d[k];
+}
+
+void NeedleBody::complianceColumns(const std::vector<int>& free_dofs, Eigen::MatrixXd& X) const {
+  Eigen::MatrixXd E = Eigen::MatrixXd::Zero(dofs_.numFree(), static_cast<Eigen::Index>(free_dofs.size()));
+  for (size_t j = 0; j < free_dofs.size(); ++j) E(free_dofs[j], static_cast<Eigen::Index>(j)) = 1.0;
+  chol_.solve(E, X);
+}
+
+void NeedleBody::commit(double /*t*/, double h) {
+  v_ += dv_;
   BeamState& s = state_;
   for (int i = 1; i < beam_.numNodes(); ++i) {
     s.p[i] += h * v_.segment<3>(6 * i);
     s.q[i] = (quaternionExp(h * v_.segment<3>(6 * i + 3)) * s.q[i]).normalized();
   }
-  s.p[0] = pc;  // exactly on the command, no drift
-  s.q[0] = qc;
-  updateReaction(dv.head<6>() / h);
-  st.solve_ms = msSince(t0);
+  s.p[0] = base_target_p_;  // exactly on the command, no drift
+  s.q[0] = base_target_q_;
+  updateReaction(dv_.head<6>() / h);
   if (!v_.allFinite()) throw NumericalError(-1, "needle '" + name_ + "': non-finite velocities");
-  return st;
 }
 
 StepStats NeedleBody::solveStatic(double t) {

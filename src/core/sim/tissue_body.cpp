@@ -102,6 +102,25 @@ void TissueBody::accumulate(StepStats& s, const LinearSolveStats& l) const {
 }
 
 StepStats TissueBody::stepDynamic(double h) {
+  StepStats st = freeMotion(h);
+  commit(h);
+  return st;
+}
+
+void TissueBody::commit(double h) {
+  VecX dv;
+  dofs_.scatter(dv_free_, dv);
+  v_ += dv;  // prescribed entries of dv are zero and v stays zero there
+  x_ += h * v_;
+}
+
+void TissueBody::complianceColumns(const std::vector<int>& free_dofs, Eigen::MatrixXd& X) const {
+  Eigen::MatrixXd E = Eigen::MatrixXd::Zero(dofs_.numFree(), static_cast<Eigen::Index>(free_dofs.size()));
+  for (size_t j = 0; j < free_dofs.size(); ++j) E(free_dofs[j], static_cast<Eigen::Index>(j)) = 1.0;
+  solver_->factor().solve(E, X);
+}
+
+StepStats TissueBody::freeMotion(double h) {
   StepStats st;
   auto t0 = std::chrono::steady_clock::now();
   const double alpha = settings_.rayleigh_mass, beta = settings_.rayleigh_stiffness;
@@ -118,11 +137,6 @@ StepStats TissueBody::stepDynamic(double h) {
 
   const auto l = solver_->solve(mass_free_, 1 + h * alpha, h * beta + h * h, b, dv_free_);
   accumulate(st, l);
-
-  VecX dv;
-  dofs_.scatter(dv_free_, dv);
-  v_ += dv;  // prescribed entries of dv are zero and v stays zero there
-  x_ += h * v_;
   return st;
 }
 

@@ -101,6 +101,25 @@ void CholmodSolver::solve(const VecX& b, VecX& x) const {
   x = Eigen::Map<const VecX>(static_cast<const double*>(x_->x), n_);
 }
 
+void CholmodSolver::solve(const Eigen::MatrixXd& Bm, Eigen::MatrixXd& X) const {
+  if (!factored_) throw std::logic_error("CholmodSolver::solve without a valid factor");
+  assert(Bm.rows() == n_);
+  cholmod_dense B{};
+  B.nrow = static_cast<size_t>(n_);
+  B.ncol = static_cast<size_t>(Bm.cols());
+  B.nzmax = B.nrow * B.ncol;
+  B.d = static_cast<size_t>(n_);
+  B.x = const_cast<double*>(Bm.data());
+  B.z = nullptr;
+  B.xtype = CHOLMOD_REAL;
+  B.dtype = CHOLMOD_DOUBLE;
+  cholmod_dense* Xd = nullptr;
+  if (!cholmod_solve2(CHOLMOD_A, factor_, &B, nullptr, &Xd, nullptr, &y_, &e_, common_))
+    throw std::runtime_error("CHOLMOD solve failed");
+  X = Eigen::Map<const Eigen::MatrixXd>(static_cast<const double*>(Xd->x), n_, Bm.cols());
+  cholmod_free_dense(&Xd, common_);
+}
+
 double CholmodSolver::factorNonzeros() const { return common_->lnz; }
 double CholmodSolver::factorFlops() const { return common_->fl; }
 bool CholmodSolver::supernodal() const { return factor_ && factor_->is_super; }
