@@ -44,6 +44,10 @@ class RunRecorder {
   long linear_iterations_ = 0, factorizations_ = 0, newton_iterations_ = 0;
   int max_linear_iterations_ = 0;
   double max_linear_residual_ = 0;
+  long constraint_iterations_ = 0;
+  int max_constraint_points_ = 0;
+  double max_constraint_residual_ = 0;
+  std::vector<double> constraint_ms_;
 };
 
 }  // namespace needle_sim

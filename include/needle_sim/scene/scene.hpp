@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "needle_sim/core/types.hpp"
+#include "needle_sim/contact/interaction_settings.hpp"
 #include "needle_sim/fem/material.hpp"
 #include "needle_sim/solver/system_solver.hpp"
 
@@ -106,6 +107,7 @@ struct Scene {
   bool has_tissue = true;
   TissueScene tissue;
   std::vector<NeedleScene> needles;
+  std::optional<InteractionSettings> interaction;
   std::vector<ProbeScene> probes;
 
   long numSteps() const;

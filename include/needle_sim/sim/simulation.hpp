@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "needle_sim/contact/needle_tissue_interaction.hpp"
 #include "needle_sim/fem/embedded_point.hpp"
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/needle_body.hpp"
@@ -30,6 +31,8 @@ class Simulation {
   double time() const { return step_ * scene_.dt; }
   bool hasTissue() const { return tissue_ != nullptr; }
   const TissueBody& tissue() const { return *tissue_; }
+  // The needle-tissue interaction, or nullptr when the scene has none.
+  const NeedleTissueInteraction* interaction() const { return interaction_.get(); }
   int numNeedles() const { return static_cast<int>(needles_.size()); }
   const NeedleBody& needle(int i) const { return *needles_[i]; }
   NeedleBody& needle(int i) { return *needles_[i]; }
@@ -50,6 +53,7 @@ class Simulation {
   Scene scene_;
   std::unique_ptr<TissueBody> tissue_;
   std::vector<std::unique_ptr<NeedleBody>> needles_;
+  std::unique_ptr<NeedleTissueInteraction> interaction_;
   std::vector<EmbeddedPoint> probes_;
   long step_ = 0;
   StepStats last_;

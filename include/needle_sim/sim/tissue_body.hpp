@@ -29,7 +29,11 @@ struct StepStats {
   double linear_residual = 0;
   int newton_iterations = 0;     // static mode
   double newton_residual = 0;    // static mode, relative
-  double total_ms() const { return forces_ms + assemble_ms + factor_ms + solve_ms; }
+  int constraint_points = 0;     // needle-tissue constraint points in the solve
+  int constraint_iterations = 0; // projected Gauss-Seidel sweeps
+  double constraint_residual = 0;
+  double constraint_ms = 0;      // whole constraint phase (detection, compliance, PGS, correction)
+  double total_ms() const { return forces_ms + assemble_ms + factor_ms + solve_ms + constraint_ms; }
 };
 
 class TissueBody {

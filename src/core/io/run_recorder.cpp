@@ -52,7 +52,9 @@ RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, bool cen
     for (const char* q : {"tip_x", "tip_y", "tip_z", "dir_x", "dir_y", "dir_z", "base_fx", "base_fy", "base_fz",
                           "base_mx", "base_my", "base_mz"})
       csv_ << ',' << n << '_' << q;
+    if (sim.interaction()) csv_ << ',' << n << "_state," << n << "_constraints";
   }
+  if (sim.interaction()) csv_ << ",constraint_points,constraint_iterations,constraint_residual,constraint_ms";
   csv_ << '\n' << std::setprecision(10);
 }
 
@@ -79,6 +81,7 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
     const auto& nd = sim_.needle(i);
     for (const Vec3& v : {nd.tipPosition(), nd.tipDirection(), nd.baseForce(), nd.baseMoment()})
       csv_ << ',' << v[0] << ',' << v[1] << ',' << v[2];
+    if (const auto* in = sim_.interaction()) csv_ << ',' << toString(in->state(i)) << ',' << in->activePoints(i);
     if (centerline_.is_open())
       for (int k = 0; k < nd.beam().numNodes(); ++k) {
         const Vec3& p = nd.state().p[k];
@@ -86,7 +89,14 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
                     << k * nd.beam().elementLength() << ',' << p[0] << ',' << p[1] << ',' << p[2] << '\n';
       }
   }
+  if (sim_.interaction())
+    csv_ << ',' << s.constraint_points << ',' << s.constraint_iterations << ',' << s.constraint_residual << ','
+         << s.constraint_ms;
   csv_ << '\n';
+  constraint_iterations_ += s.constraint_iterations;
+  max_constraint_points_ = std::max(max_constraint_points_, s.constraint_points);
+  max_constraint_residual_ = std::max(max_constraint_residual_, s.constraint_residual);
+  constraint_ms_.push_back(s.constraint_ms);
 }
 
 void RunRecorder::writeSummary(const std::string& status, double wall_s, long fail_step, const std::string& message) {
@@ -124,6 +134,12 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
     json line = json::array();
     for (const auto& p : nd.state().p) line.push_back(arr(p));
     needles[nd.name()]["centerline"] = line;
+    if (const auto* in = sim_.interaction()) {
+      needles[nd.name()]["state"] = toString(in->state(i));
+      needles[nd.name()]["constraints"] = in->activePoints(i);
+      const double pf = in->punctureForce(i);
+      needles[nd.name()]["puncture_force"] = std::isnan(pf) ? json(nullptr) : json(pf);
+    }
   }
   if (sim_.numNeedles()) j["needles"] = needles;
   j["steps"] = sim_.stepIndex();
@@ -144,6 +160,11 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                  {"linear_residual_max", max_linear_residual_},
                  {"factorizations", factorizations_},
                  {"newton_iterations_total", newton_iterations_}};
+  if (sim_.interaction())
+    j["interaction"] = {{"constraint_iterations_total", constraint_iterations_},
+                        {"constraint_points_max", max_constraint_points_},
+                        {"constraint_residual_max", max_constraint_residual_},
+                        {"constraint_ms", pj(percentiles(constraint_ms_))}};
   j["energy"] = {{"kinetic", sim_.kineticEnergy()}, {"elastic", sim_.elasticEnergy()}};
   json probes = json::object();
   for (int i = 0; i < sim_.numProbes(); ++i) {

@@ -395,6 +395,35 @@ void readNeedles(const Reader& r, const YAML::Node& root, Scene& s) {
   }
 }
 
+void readInteraction(const Reader& r, const YAML::Node& n, Scene& s) {
+  const std::string p = "interaction";
+  r.checkKeys(n, p, {"puncture_force", "cutting_force", "friction", "shaft_spacing", "solver"});
+  InteractionSettings is;
+  auto nonNegative = [&](const char* key) {
+    const std::string k = Reader::join(p, key);
+    const double v = r.number(r.child(n, p, key, true), k);
+    if (v < 0) r.fail(k, "must be >= 0, got " + Reader::fmt(v));
+    return v;
+  };
+  is.puncture_force = nonNegative("puncture_force");
+  is.cutting_force = nonNegative("cutting_force");
+  is.friction = nonNegative("friction");
+  is.shaft_spacing = r.positive(n, p, "shaft_spacing");
+  if (auto sv = r.child(n, p, "solver", false)) {
+    r.checkKeys(sv, p + ".solver", {"tolerance", "max_iterations"});
+    if (sv["tolerance"]) is.tolerance = r.positive(sv, p + ".solver", "tolerance");
+    if (auto it = r.child(sv, p + ".solver", "max_iterations", false)) {
+      const long long v = r.integer(it, p + ".solver.max_iterations");
+      if (v < 1 || v > 1000000) r.fail(p + ".solver.max_iterations", "must be in [1, 1000000]");
+      is.max_iterations = static_cast<int>(v);
+    }
+  }
+  if (!s.has_tissue) r.fail(p, "needs a tissue (the scene has none)");
+  if (s.needles.empty()) r.fail(p, "needs a needle (the scene has none)");
+  if (s.solver.mode != SolverScene::Mode::Dynamic) r.fail(p, "needs solver.mode: dynamic");
+  s.interaction = is;
+}
+
 void readProbes(const Reader& r, const YAML::Node& n, Scene& s) {
   if (!n.IsSequence()) r.fail("probes", "must be a list of {name, point}");
   static const std::regex ident("[A-Za-z0-9_]+");
@@ -465,7 +494,7 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
   Reader r(file);
   if (!root.IsMap()) r.fail("", std::string("scene must be a YAML map at the top level, got ") + typeName(root));
   for (const auto& o : overrides) applyOverride(root, o, file);
-  r.checkKeys(root, "", {"name", "description", "time", "solver", "tissue", "needle", "needles", "probes"});
+  r.checkKeys(root, "", {"name", "description", "time", "solver", "tissue", "needle", "needles", "interaction", "probes"});
   Scene s;
   s.file = file;
   if (auto v = r.child(root, "", "name", false)) s.name = r.string(v, "name");
@@ -480,6 +509,7 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
   else s.has_tissue = false;
   readNeedles(r, root, s);
   if (!s.has_tissue && s.needles.empty()) r.fail("tissue", "missing: a scene needs a tissue, a needle, or both");
+  if (auto v = r.child(root, "", "interaction", false)) readInteraction(r, v, s);
   if (auto v = r.child(root, "", "probes", false)) {
     if (!s.has_tissue) r.fail("probes", "probes are tissue points, but the scene has no tissue");
     readProbes(r, v, s);

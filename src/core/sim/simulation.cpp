@@ -34,6 +34,23 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
     }
     probes_.push_back(ep);
   }
+  // A needle must start outside the tissue: puncture happens on the surface.
+  for (size_t n = 0; n < needles_.size(); ++n)
+    for (int i = 0; i < needles_[n]->beam().numNodes(); ++i) {
+      EmbeddedPoint ep;
+      const Vec3& p = needles_[n]->state().p[i];
+      if (locator.locate(p, ep)) {
+        std::ostringstream m;
+        m << "the needle starts inside the tissue (node " << i << " at (" << p.transpose()
+          << ")); place its tip outside the tissue surface";
+        throw InputError(scene.file, scene.needles[n].key + ".base.position", m.str());
+      }
+    }
+  if (scene.interaction) {
+    std::vector<NeedleBody*> nd;
+    for (auto& n : needles_) nd.push_back(n.get());
+    interaction_ = std::make_unique<NeedleTissueInteraction>(*scene.interaction, *tissue_, nd);
+  }
 }
 
 Vec3 Simulation::probeDisplacement(int i) const {
@@ -102,8 +119,23 @@ const StepStats& Simulation::step() {
       last_.newton_iterations += s.newton_iterations;
       last_.newton_residual = std::max(last_.newton_residual, s.newton_residual);
     };
-    if (tissue_) add(dynamic ? tissue_->stepDynamic(scene_.dt) : tissue_->solveStatic());
-    for (auto& nd : needles_) add(dynamic ? nd->stepDynamic(time(), scene_.dt) : nd->solveStatic(k * scene_.dt));
+    if (interaction_) {
+      // free motion of every body, constraint solve and corrections, commit, law updates
+      const double h = scene_.dt;
+      add(tissue_->freeMotion(h));
+      for (auto& nd : needles_) add(nd->freeMotion(time(), h));
+      const InteractionStats is = interaction_->solve(h);
+      last_.constraint_points = is.points;
+      last_.constraint_iterations = is.iterations;
+      last_.constraint_residual = is.residual;
+      last_.constraint_ms = is.ms;
+      tissue_->commit(h);
+      for (auto& nd : needles_) nd->commit(time(), h);
+      interaction_->afterCommit();
+    } else {
+      if (tissue_) add(dynamic ? tissue_->stepDynamic(scene_.dt) : tissue_->solveStatic());
+      for (auto& nd : needles_) add(dynamic ? nd->stepDynamic(time(), scene_.dt) : nd->solveStatic(k * scene_.dt));
+    }
   } catch (const NumericalError& e) {
     throw NumericalError(k, std::string(e.what()) + " (step " + std::to_string(k) + ")");
   }

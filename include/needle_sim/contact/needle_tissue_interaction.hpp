@@ -1,0 +1,83 @@
+#pragma once
+// Needle-tissue interaction (paper §2.1 and §2.4): the three constraint kinds, their
+// creation and release as the needle is inserted and withdrawn, and the constraint solve.
+//
+// Per step, between the bodies' free motion and their commit:
+//   1. detect the tip meeting the surface (approaching needles), update every constraint's
+//      frame and gap at the current positions, release shaft points the needle has left;
+//   2. rows H: each point touches 8 tissue nodes (trilinear weights) and 2 needle nodes;
+//   3. compliance W = h (H_T A_T^-1 H_T^T + H_N A_N^-1 H_N^T) from each body's factor, with
+//      one multi-right-hand-side solve over the DOFs the rows touch;
+//   4. projected Gauss-Seidel with the laws; 5. corrections dv += h A^-1 H^T lambda.
+// After the commit, the laws' state changes: puncture when the normal force exceeds the
+// puncture strength, cutting (the tip anchor moves, shaft points are laid every
+// shaft_spacing along the cut path), withdrawal (tip released, shaft points only).
+// A step with no constraint costs one surface test per approaching needle.
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "needle_sim/contact/contact_constraint.hpp"
+#include "needle_sim/contact/interaction_settings.hpp"
+#include "needle_sim/contact/tissue_surface.hpp"
+#include "needle_sim/sim/needle_body.hpp"
+#include "needle_sim/sim/tissue_body.hpp"
+
+namespace needle_sim {
+
+enum class InsertionState { Approaching, InContact, Punctured, Inserted, Withdrawing, Out };
+const char* toString(InsertionState s);
+
+struct InteractionStats {
+  int points = 0;
+  int iterations = 0;
+  double residual = 0;
+  bool converged = true;
+  double ms = 0;  // whole constraint phase
+};
+
+class NeedleTissueInteraction {
+ public:
+  NeedleTissueInteraction(const InteractionSettings& settings, TissueBody& tissue, std::vector<NeedleBody*> needles);
+
+  // Between the bodies' freeMotion and commit.
+  InteractionStats solve(double h);
+  // After the bodies' commit: puncture, cutting, withdrawal.
+  void afterCommit();
+
+  InsertionState state(int needle) const { return tracks_[needle].state; }
+  int activePoints(int needle) const;
+  const std::vector<std::unique_ptr<ContactConstraint>>& constraints() const { return constraints_; }
+  // Normal force at the moment of the last puncture of a needle (NaN before any).
+  double punctureForce(int needle) const { return tracks_[needle].puncture_force; }
+  // Total constraint force on a needle (sum of lambda_k d_k) at the last solve.
+  Vec3 forceOnNeedle(int needle) const;
+  const InteractionSettings& settings() const { return settings_; }
+
+ private:
+  struct Track {
+    InsertionState state = InsertionState::Approaching;
+    double puncture_force = std::numeric_limits<double>::quiet_NaN();
+    Vec3 next_shaft_rest = Vec3::Zero();  // where the next shaft point goes (rest space)
+    bool has_path = false;
+  };
+  // Needle centre-line point at arc length s: element, parameter, position, unit axis.
+  void needlePoint(int n, double s, int& e, double& xi, Vec3& p, Vec3& axis) const;
+  double closestArcLength(int n, const Vec3& p) const;
+  bool locateCurrent(const Vec3& p, int hint, EmbeddedPoint& out) const;
+  // Appends to `out` (not to constraints_, which the caller may be iterating).
+  void layShaftPoints(int n, const EmbeddedPoint& upto, std::vector<std::unique_ptr<ContactConstraint>>& out);
+  void updateGeometry();
+
+  InteractionSettings settings_;
+  TissueBody& tissue_;
+  std::vector<NeedleBody*> needles_;
+  TissueSurface surface_;
+  PointLocator rest_locator_;
+  std::vector<std::vector<int>> node_elements_;  // node -> elements
+  std::vector<std::unique_ptr<ContactConstraint>> constraints_;
+  std::vector<Track> tracks_;
+  std::vector<int> column_of_;  // scratch: free tissue DOF -> column in the touched set
+};
+
+}  // namespace needle_sim

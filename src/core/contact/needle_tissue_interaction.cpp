@@ -1,0 +1,396 @@
+#include "needle_sim/contact/needle_tissue_interaction.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+
+#include "needle_sim/contact/projected_gauss_seidel.hpp"
+#include "needle_sim/contact/puncture_constraint.hpp"
+#include "needle_sim/contact/shaft_constraint.hpp"
+#include "needle_sim/contact/tip_constraint.hpp"
+#include "needle_sim/core/error.hpp"
+
+namespace needle_sim {
+
+const char* toString(InsertionState s) {
+  switch (s) {
+    case InsertionState::Approaching: return "approaching";
+    case InsertionState::InContact: return "in_contact";
+    case InsertionState::Punctured: return "punctured";
+    case InsertionState::Inserted: return "inserted";
+    case InsertionState::Withdrawing: return "withdrawing";
+    case InsertionState::Out: return "out";
+  }
+  return "?";
+}
+
+namespace {
+// Frame with the given first column and an orthonormal completion.
+Mat3 frameFrom(const Vec3& d0) {
+  Mat3 F;
+  F.col(0) = d0.normalized();
+  F.col(1) = F.col(0).unitOrthogonal();
+  F.col(2) = F.col(0).cross(F.col(1));
+  return F;
+}
+}  // namespace
+
+NeedleTissueInteraction::NeedleTissueInteraction(const InteractionSettings& s, TissueBody& tissue,
+                                                 std::vector<NeedleBody*> needles)
+    : settings_(s),
+      tissue_(tissue),
+      needles_(std::move(needles)),
+      surface_(tissue.mesh()),
+      rest_locator_(tissue.mesh()),
+      tracks_(needles_.size()),
+      column_of_(tissue.dofs().numFree(), -1) {
+  const HexMesh& mesh = tissue.mesh();
+  node_elements_.resize(mesh.numNodes());
+  for (int e = 0; e < mesh.numElements(); ++e)
+    for (int a : mesh.element(e)) node_elements_[a].push_back(e);
+}
+
+int NeedleTissueInteraction::activePoints(int n) const {
+  int k = 0;
+  for (const auto& c : constraints_) k += c->needle == n;
+  return k;
+}
+
+Vec3 NeedleTissueInteraction::forceOnNeedle(int n) const {
+  Vec3 f = Vec3::Zero();
+  for (const auto& c : constraints_)
+    if (c->needle == n) f += c->frame * c->lambda;
+  return f;
+}
+
+void NeedleTissueInteraction::needlePoint(int n, double s, int& e, double& xi, Vec3& p, Vec3& axis) const {
+  const NeedleBody& nd = *needles_[n];
+  const double L0 = nd.beam().elementLength();
+  const int ne = nd.beam().numElements();
+  e = std::clamp(static_cast<int>(std::floor(s / L0)), 0, ne - 1);
+  xi = std::clamp(s / L0 - e, 0.0, 1.0);
+  const Vec3& a = nd.state().p[e];
+  const Vec3& b = nd.state().p[e + 1];
+  p = (1 - xi) * a + xi * b;
+  axis = (b - a).normalized();
+}
+
+double NeedleTissueInteraction::closestArcLength(int n, const Vec3& p) const {
+  const NeedleBody& nd = *needles_[n];
+  const double L0 = nd.beam().elementLength();
+  double best = std::numeric_limits<double>::infinity(), s = 0;
+  for (int e = 0; e < nd.beam().numElements(); ++e) {
+    const Vec3& a = nd.state().p[e];
+    const Vec3 d = nd.state().p[e + 1] - a;
+    // Clamped to the segment, except beyond the tip, so that points the needle has been
+    // withdrawn past get s > L.
+    double t = std::max(0.0, d.dot(p - a) / d.squaredNorm());
+    if (e + 1 < nd.beam().numElements()) t = std::min(t, 1.0);
+    const double dist = (a + t * d - p).squaredNorm();
+    if (dist < best) {
+      best = dist;
+      s = (e + t) * L0;
+    }
+  }
+  return s;
+}
+
+bool NeedleTissueInteraction::locateCurrent(const Vec3& p, int hint, EmbeddedPoint& out) const {
+  const HexMesh& mesh = tissue_.mesh();
+  const VecX& x = tissue_.positions();
+  auto tryElement = [&](int e) {
+    Eigen::Matrix<double, 8, 3> X;
+    for (int a = 0; a < 8; ++a) X.row(a) = node3(x, mesh.element(e)[a]).transpose();
+    Vec3 xi;
+    if (!hex8::inverseMap(X, p, xi) || xi.cwiseAbs().maxCoeff() > 1 + 1e-9) return false;
+    out.element = e;
+    out.xi = xi.cwiseMax(-1.0).cwiseMin(1.0);
+    out.weights = hex8::shape(out.xi);
+    out.rest = mesh.elementCorners(e).transpose() * out.weights;
+    return true;
+  };
+  if (hint >= 0) {
+    if (tryElement(hint)) return true;
+    for (int a : mesh.element(hint))
+      for (int e : node_elements_[a])
+        if (e != hint && tryElement(e)) return true;
+  }
+  for (int e = 0; e < mesh.numElements(); ++e)
+    if (tryElement(e)) return true;
+  return false;
+}
+
+// Lays shaft points every shaft_spacing along the cut path (in rest space) up to `upto`.
+void NeedleTissueInteraction::layShaftPoints(int n, const EmbeddedPoint& upto,
+                                             std::vector<std::unique_ptr<ContactConstraint>>& out) {
+  Track& tr = tracks_[n];
+  const double sp = settings_.shaft_spacing;
+  for (int guard = 0; guard < 100000; ++guard) {
+    const Vec3 d = upto.rest - tr.next_shaft_rest;
+    const double len = d.norm();
+    if (len < sp) break;
+    EmbeddedPoint ep;
+    if (rest_locator_.locate(tr.next_shaft_rest, ep)) {
+      auto c = std::make_unique<ShaftConstraint>(settings_.friction);
+      c->tissue = ep;
+      c->needle = n;
+      out.push_back(std::move(c));
+    }
+    tr.next_shaft_rest += d * (sp / len);
+  }
+}
+
+void NeedleTissueInteraction::updateGeometry() {
+  const HexMesh& mesh = tissue_.mesh();
+  const VecX& x = tissue_.positions();
+  std::vector<std::unique_ptr<ContactConstraint>> kept;
+  for (auto& c : constraints_) {
+    const NeedleBody& nd = *needles_[c->needle];
+    const Vec3 pT = c->tissue.interpolate(mesh, x);
+    const double L = nd.beam().length();
+    if (c->kind() == ConstraintKind::Shaft) {
+      c->s = closestArcLength(c->needle, pT);
+      if (c->s >= L) continue;  // the needle has been withdrawn past it: release
+    } else {
+      c->s = L;
+    }
+    int e;
+    double xi;
+    Vec3 pN, axis;
+    needlePoint(c->needle, c->s, e, xi, pN, axis);
+    if (c->kind() != ConstraintKind::Puncture) c->frame = frameFrom(axis);
+    c->gap = c->frame.transpose() * (pN - pT);
+    kept.push_back(std::move(c));
+  }
+  constraints_ = std::move(kept);
+}
+
+InteractionStats NeedleTissueInteraction::solve(double h) {
+  const auto t0 = std::chrono::steady_clock::now();
+  InteractionStats st;
+  const HexMesh& mesh = tissue_.mesh();
+  const VecX& xT = tissue_.positions();
+
+  // 1. Contact detection for needles not in the tissue.
+  for (size_t n = 0; n < needles_.size(); ++n) {
+    Track& tr = tracks_[n];
+    if (tr.state != InsertionState::Approaching && tr.state != InsertionState::Out) continue;
+    const NeedleBody& nd = *needles_[n];
+    const int tip = nd.beam().numNodes() - 1;
+    const Vec3 p = nd.state().p[tip];
+    const Vec3 v = nd.velocities().segment<3>(6 * tip) + nd.velocityChange().segment<3>(6 * tip);
+    const Vec3 axis = (p - nd.state().p[tip - 1]).normalized();
+    const double reach = h * v.norm() + 1e-9;
+    SurfaceHit hit;
+    if (!surface_.firstEntry(xT, p - axis * reach, p + axis * (reach + std::max(0.0, h * v.dot(axis))), hit)) continue;
+    auto c = std::make_unique<PunctureConstraint>(settings_.friction);
+    c->tissue = hit.material;
+    c->needle = static_cast<int>(n);
+    c->frame = frameFrom(hit.normal);
+    constraints_.push_back(std::move(c));
+    tr.state = InsertionState::InContact;
+  }
+  updateGeometry();
+  st.points = static_cast<int>(constraints_.size());
+  if (constraints_.empty()) {
+    st.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    return st;
+  }
+
+  // 2. Rows: touched tissue DOFs (columns of the compliance) and needle DOFs.
+  const int np = st.points, m = 3 * np;
+  const DofMap& tdofs = tissue_.dofs();
+  std::vector<int> tcols;  // free tissue DOFs touched
+  std::vector<std::vector<int>> ncols(needles_.size());
+  std::vector<std::vector<int>> ncol_of(needles_.size());
+  for (size_t n = 0; n < needles_.size(); ++n) ncol_of[n].assign(needles_[n]->dofs().numFree(), -1);
+  struct RowGeom {
+    int e;
+    double xi;
+  };
+  std::vector<RowGeom> geom(np);
+  for (int p = 0; p < np; ++p) {
+    const auto& c = *constraints_[p];
+    for (int a = 0; a < 8; ++a)
+      for (int d = 0; d < 3; ++d) {
+        const int f = tdofs.freeIndex(3 * mesh.element(c.tissue.element)[a] + d);
+        if (f >= 0 && column_of_[f] < 0) {
+          column_of_[f] = static_cast<int>(tcols.size());
+          tcols.push_back(f);
+        }
+      }
+    Vec3 pN, axis;
+    needlePoint(c.needle, c.s, geom[p].e, geom[p].xi, pN, axis);
+    const DofMap& nd = needles_[c.needle]->dofs();
+    for (int node : {geom[p].e, geom[p].e + 1})
+      for (int d = 0; d < 3; ++d) {
+        const int f = nd.freeIndex(6 * node + d);
+        if (f >= 0 && ncol_of[c.needle][f] < 0) {
+          ncol_of[c.needle][f] = static_cast<int>(ncols[c.needle].size());
+          ncols[c.needle].push_back(f);
+        }
+      }
+  }
+  // H restricted to the touched DOFs, one block per body.
+  Eigen::MatrixXd HT = Eigen::MatrixXd::Zero(m, static_cast<Eigen::Index>(tcols.size()));
+  std::vector<Eigen::MatrixXd> HN(needles_.size());
+  for (size_t n = 0; n < needles_.size(); ++n) HN[n] = Eigen::MatrixXd::Zero(m, static_cast<Eigen::Index>(ncols[n].size()));
+  for (int p = 0; p < np; ++p) {
+    const auto& c = *constraints_[p];
+    for (int k = 0; k < 3; ++k) {
+      const Vec3 d = c.frame.col(k);
+      for (int a = 0; a < 8; ++a)
+        for (int j = 0; j < 3; ++j) {
+          const int f = tdofs.freeIndex(3 * mesh.element(c.tissue.element)[a] + j);
+          if (f >= 0) HT(3 * p + k, column_of_[f]) -= c.tissue.weights[a] * d[j];
+        }
+      const DofMap& nd = needles_[c.needle]->dofs();
+      const double w[2] = {1 - geom[p].xi, geom[p].xi};
+      for (int q = 0; q < 2; ++q)
+        for (int j = 0; j < 3; ++j) {
+          const int f = nd.freeIndex(6 * (geom[p].e + q) + j);
+          if (f >= 0) HN[c.needle](3 * p + k, ncol_of[c.needle][f]) += w[q] * d[j];
+        }
+    }
+  }
+
+  // 3. Compliance from each body's factor; free velocities of the rows.
+  Eigen::MatrixXd XT, W = Eigen::MatrixXd::Zero(m, m);
+  tissue_.complianceColumns(tcols, XT);
+  {
+    Eigen::MatrixXd C(tcols.size(), tcols.size());
+    for (size_t i = 0; i < tcols.size(); ++i) C.row(static_cast<Eigen::Index>(i)) = XT.row(tcols[i]);
+    W.noalias() += HT * C * HT.transpose();
+  }
+  std::vector<Eigen::MatrixXd> XN(needles_.size());
+  for (size_t n = 0; n < needles_.size(); ++n) {
+    if (ncols[n].empty()) continue;
+    needles_[n]->complianceColumns(ncols[n], XN[n]);
+    Eigen::MatrixXd C(ncols[n].size(), ncols[n].size());
+    for (size_t i = 0; i < ncols[n].size(); ++i) C.row(static_cast<Eigen::Index>(i)) = XN[n].row(ncols[n][i]);
+    W.noalias() += HN[n] * C * HN[n].transpose();
+  }
+  W *= h;
+  VecX u_free = VecX::Zero(m);
+  {
+    VecX vT(tcols.size());
+    const VecX& v = tissue_.velocities();
+    const VecX& dv = tissue_.velocityChangeFree();
+    for (size_t i = 0; i < tcols.size(); ++i) vT[static_cast<Eigen::Index>(i)] = v[tdofs.freeToFull()[tcols[i]]] + dv[tcols[i]];
+    u_free += HT * vT;
+    for (size_t n = 0; n < needles_.size(); ++n) {
+      if (ncols[n].empty()) continue;
+      const DofMap& nd = needles_[n]->dofs();
+      VecX vN(ncols[n].size());
+      for (size_t i = 0; i < ncols[n].size(); ++i) {
+        const int full = nd.freeToFull()[ncols[n][i]];
+        vN[static_cast<Eigen::Index>(i)] = needles_[n]->velocities()[full] + needles_[n]->velocityChange()[full];
+      }
+      u_free += HN[n] * vN;
+    }
+    // Rows' dependence on the prescribed needle base (moving with the command).
+    for (int p = 0; p < np; ++p) {
+      const auto& c = *constraints_[p];
+      if (geom[p].e != 0) continue;
+      const NeedleBody& nd = *needles_[c.needle];
+      const Vec3 vb = nd.velocities().head<3>() + nd.velocityChange().head<3>();
+      u_free.segment<3>(3 * p) += c.frame.transpose() * ((1 - geom[p].xi) * vb);
+    }
+  }
+
+  // 4. Projected Gauss-Seidel, warm-started from the last multipliers.
+  std::vector<ContactConstraint*> cs;
+  VecX lambda(m);
+  for (int p = 0; p < np; ++p) {
+    cs.push_back(constraints_[p].get());
+    lambda.segment<3>(3 * p) = constraints_[p]->lambda;
+  }
+  // Force scale for the convergence test: the interaction's strengths (or 1 mN).
+  const double force_scale = std::max({settings_.puncture_force, settings_.cutting_force, 1e-3});
+  const PgsResult r =
+      projectedGaussSeidel(W, u_free, cs, h, settings_.tolerance, settings_.max_iterations, force_scale, lambda);
+  st.iterations = r.iterations;
+  st.residual = r.residual;
+  st.converged = r.converged;
+  if (!lambda.allFinite()) throw NumericalError(-1, "constraint solve produced NaN/Inf");
+  for (int p = 0; p < np; ++p) constraints_[p]->lambda = lambda.segment<3>(3 * p);
+
+  // 5. Corrections dv = h A^-1 H^T lambda for each body.
+  tissue_.addVelocityChangeFree(h * (XT * (HT.transpose() * lambda)));
+  for (size_t n = 0; n < needles_.size(); ++n)
+    if (!ncols[n].empty()) needles_[n]->addVelocityChangeFree(h * (XN[n] * (HN[n].transpose() * lambda)));
+  for (int f : tcols) column_of_[f] = -1;
+  st.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  return st;
+}
+
+void NeedleTissueInteraction::afterCommit() {
+  const HexMesh& mesh = tissue_.mesh();
+  const VecX& x = tissue_.positions();
+  std::vector<std::unique_ptr<ContactConstraint>> created;
+  for (auto it = constraints_.begin(); it != constraints_.end();) {
+    ContactConstraint& c = **it;
+    Track& tr = tracks_[c.needle];
+    const NeedleBody& nd = *needles_[c.needle];
+    const Vec3 tip = nd.tipPosition();
+    const Vec3 pT = c.tissue.interpolate(mesh, x);
+    if (c.kind() == ConstraintKind::Puncture) {
+      const double gap = c.frame.col(0).dot(tip - pT);
+      if (c.lambda[0] > settings_.puncture_force) {
+        // Puncture: the tip is tied to the tissue where it touched; the path starts there.
+        tr.puncture_force = c.lambda[0];
+        auto t = std::make_unique<TipConstraint>(settings_.friction, settings_.cutting_force);
+        t->tissue = c.tissue;
+        t->needle = c.needle;
+        tr.next_shaft_rest = c.tissue.rest;
+        tr.has_path = true;
+        tr.state = InsertionState::Punctured;
+        created.push_back(std::move(t));
+        it = constraints_.erase(it);
+        continue;
+      }
+      if (c.lambda[0] <= 0 && gap > 0) {  // lifted off
+        tr.state = tr.has_path ? InsertionState::Out : InsertionState::Approaching;
+        it = constraints_.erase(it);
+        continue;
+      }
+    } else if (c.kind() == ConstraintKind::Tip) {
+      const Vec3 axis = (tip - nd.state().p[nd.beam().numNodes() - 2]).normalized();
+      const double advance = axis.dot(tip - pT);
+      auto& tipc = static_cast<TipConstraint&>(c);
+      if (tipc.cutting() && advance > 0) {
+        // Cutting: the anchor moves to the tissue point now at the tip; the path behind it
+        // gets its shaft points.
+        EmbeddedPoint anchor;
+        if (locateCurrent(tip, c.tissue.element, anchor)) {
+          layShaftPoints(c.needle, anchor, created);
+          c.tissue = anchor;
+          tr.state = InsertionState::Inserted;
+        } else {
+          // The tip left the tissue mesh (through the far side): keep the path, drop the tip.
+          layShaftPoints(c.needle, c.tissue, created);
+          it = constraints_.erase(it);
+          continue;
+        }
+      } else if (advance < -1e-3 * settings_.shaft_spacing) {
+        // Pulled back: the tip slides out of its channel; only the shaft points hold it.
+        tr.state = InsertionState::Withdrawing;
+        it = constraints_.erase(it);
+        continue;
+      } else if (tr.state == InsertionState::Punctured) {
+        tr.state = InsertionState::Inserted;
+      }
+    }
+    ++it;
+  }
+  for (auto& c : created) constraints_.push_back(std::move(c));
+  for (size_t n = 0; n < needles_.size(); ++n) {
+    Track& tr = tracks_[n];
+    if (tr.has_path && activePoints(static_cast<int>(n)) == 0 &&
+        (tr.state == InsertionState::Withdrawing || tr.state == InsertionState::Inserted))
+      tr.state = InsertionState::Out;
+  }
+}
+
+}  // namespace needle_sim
