@@ -50,8 +50,10 @@ class NeedleTissueInteraction {
   const std::vector<std::unique_ptr<ContactConstraint>>& constraints() const { return constraints_; }
   // Normal force at the moment of the last puncture of a needle (NaN before any).
   double punctureForce(int needle) const { return tracks_[needle].puncture_force; }
-  // Total constraint force on a needle (sum of lambda_k d_k) at the last solve.
+  // Total constraint force on a needle, assembled on its nodes with the rows' weights, and
+  // on the tissue (all nodes, prescribed ones included), at the last solve.
   Vec3 forceOnNeedle(int needle) const;
+  Vec3 forceOnTissue() const;
   const InteractionSettings& settings() const { return settings_; }
 
  private:

@@ -1,8 +1,9 @@
 #pragma once
-// Projected block Gauss-Seidel on the Delassus operator W (paper §2.4): find lambda with
+// Projected Gauss-Seidel on the Delassus operator W (paper §2.4): find lambda with
 //   u = u_free + W lambda,   each constraint's rows satisfying its law (ContactConstraint::
-//   target and ::project). Rows are updated one at a time, u incrementally (one column of W
-//   per change), and the constraint's block projected after each row.
+//   target and ::project). The bilateral rows are eliminated exactly (Schur complement, see
+//   the .cpp); the rows with a law are updated one at a time, u incrementally, and the
+//   constraint's block projected after each row.
 #include <vector>
 
 #include "needle_sim/contact/contact_constraint.hpp"

@@ -59,11 +59,31 @@ int NeedleTissueInteraction::activePoints(int n) const {
 
 Vec3 NeedleTissueInteraction::forceOnNeedle(int n) const {
   Vec3 f = Vec3::Zero();
-  for (const auto& c : constraints_)
-    if (c->needle == n) f += c->frame * c->lambda;
+  for (const auto& c : constraints_) {
+    if (c->needle != n) continue;
+    int e;
+    double xi;
+    Vec3 p, axis;
+    needlePoint(n, c->s, e, xi, p, axis);
+    const Vec3 fc = c->frame * c->lambda;
+    const double x2 = xi * xi, x3 = x2 * xi;
+    f += (2 * x3 - 3 * x2 + 1) * fc + (-2 * x3 + 3 * x2) * fc;  // translational Hermite weights of nodes e, e + 1
+  }
   return f;
 }
 
+Vec3 NeedleTissueInteraction::forceOnTissue() const {
+  Vec3 f = Vec3::Zero();
+  for (const auto& c : constraints_) {
+    const Vec3 fc = c->frame * c->lambda;
+    for (int a = 0; a < 8; ++a) f -= c->tissue.weights[a] * fc;
+  }
+  return f;
+}
+
+// The needle centre line between two nodes is the cubic Hermite curve of the beam element
+// (end positions and end tangents from the node orientations), so shaft points between
+// nodes see the needle's curvature; its velocity involves the nodes' spins (hermiteRow).
 void NeedleTissueInteraction::needlePoint(int n, double s, int& e, double& xi, Vec3& p, Vec3& axis) const {
   const NeedleBody& nd = *needles_[n];
   const double L0 = nd.beam().elementLength();
@@ -72,8 +92,13 @@ void NeedleTissueInteraction::needlePoint(int n, double s, int& e, double& xi, V
   xi = std::clamp(s / L0 - e, 0.0, 1.0);
   const Vec3& a = nd.state().p[e];
   const Vec3& b = nd.state().p[e + 1];
-  p = (1 - xi) * a + xi * b;
-  axis = (b - a).normalized();
+  const double l = (b - a).norm();
+  const Vec3 ta = nd.state().q[e] * nd.beam().restDirection();
+  const Vec3 tb = nd.state().q[e + 1] * nd.beam().restDirection();
+  const double x2 = xi * xi, x3 = x2 * xi;
+  p = (2 * x3 - 3 * x2 + 1) * a + (x3 - 2 * x2 + xi) * l * ta + (-2 * x3 + 3 * x2) * b + (x3 - x2) * l * tb;
+  const Vec3 dp = (6 * x2 - 6 * xi) * a + (3 * x2 - 4 * xi + 1) * l * ta + (-6 * x2 + 6 * xi) * b + (3 * x2 - 2 * xi) * l * tb;
+  axis = dp.normalized();
 }
 
 double NeedleTissueInteraction::closestArcLength(int n, const Vec3& p) const {
@@ -147,14 +172,28 @@ void NeedleTissueInteraction::updateGeometry() {
   std::vector<std::unique_ptr<ContactConstraint>> kept;
   for (auto& c : constraints_) {
     const NeedleBody& nd = *needles_[c->needle];
-    const Vec3 pT = c->tissue.interpolate(mesh, x);
     const double L = nd.beam().length();
     if (c->kind() == ConstraintKind::Shaft) {
-      c->s = closestArcLength(c->needle, pT);
+      c->s = closestArcLength(c->needle, c->tissue.interpolate(mesh, x));
       if (c->s >= L) continue;  // the needle has been withdrawn past it: release
     } else {
       c->s = L;
     }
+    if (c->kind() == ConstraintKind::Puncture) {
+      // The contact point is the surface point on the needle axis at the tip: it moves with
+      // the tip when the tip slides (the friction law acts on velocities), so that the tip is
+      // tied where it is when it punctures.
+      const int tip = nd.beam().numNodes() - 1;
+      const Vec3 p = nd.state().p[tip];
+      const Vec3 axis = (p - nd.state().p[tip - 1]).normalized();
+      const double r = 0.5 * settings_.shaft_spacing + std::abs(c->gap[0]);
+      SurfaceHit hit;
+      if (surface_.firstEntry(x, p - axis * r, p + axis * r, hit)) {
+        c->tissue = hit.material;
+        c->frame = frameFrom(hit.normal);
+      }
+    }
+    const Vec3 pT = c->tissue.interpolate(mesh, x);
     int e;
     double xi;
     Vec3 pN, axis;
@@ -181,6 +220,7 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
     const Vec3 p = nd.state().p[tip];
     const Vec3 v = nd.velocities().segment<3>(6 * tip) + nd.velocityChange().segment<3>(6 * tip);
     const Vec3 axis = (p - nd.state().p[tip - 1]).normalized();
+    if (v.dot(axis) <= 0) continue;  // only a needle moving forward can meet the surface
     const double reach = h * v.norm() + 1e-9;
     SurfaceHit hit;
     if (!surface_.firstEntry(xT, p - axis * reach, p + axis * (reach + std::max(0.0, h * v.dot(axis))), hit)) continue;
@@ -224,7 +264,7 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
     needlePoint(c.needle, c.s, geom[p].e, geom[p].xi, pN, axis);
     const DofMap& nd = needles_[c.needle]->dofs();
     for (int node : {geom[p].e, geom[p].e + 1})
-      for (int d = 0; d < 3; ++d) {
+      for (int d = 0; d < 6; ++d) {
         const int f = nd.freeIndex(6 * node + d);
         if (f >= 0 && ncol_of[c.needle][f] < 0) {
           ncol_of[c.needle][f] = static_cast<int>(ncols[c.needle].size());
@@ -246,12 +286,21 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
           if (f >= 0) HT(3 * p + k, column_of_[f]) -= c.tissue.weights[a] * d[j];
         }
       const DofMap& nd = needles_[c.needle]->dofs();
-      const double w[2] = {1 - geom[p].xi, geom[p].xi};
-      for (int q = 0; q < 2; ++q)
+      // Hermite weights: d . v = h00 d.v_a + h10 l (t_a x d).w_a + h01 d.v_b + h11 l (t_b x d).w_b
+      const double xi = geom[p].xi, x2 = xi * xi, x3 = x2 * xi;
+      const NeedleBody& body = *needles_[c.needle];
+      const int ea = geom[p].e;
+      const double l = (body.state().p[ea + 1] - body.state().p[ea]).norm();
+      const double wt[2] = {2 * x3 - 3 * x2 + 1, -2 * x3 + 3 * x2};
+      const double wr[2] = {(x3 - 2 * x2 + xi) * l, (x3 - x2) * l};
+      for (int q = 0; q < 2; ++q) {
+        const Vec3 rot = (body.state().q[ea + q] * body.beam().restDirection()).cross(d) * wr[q];
         for (int j = 0; j < 3; ++j) {
-          const int f = nd.freeIndex(6 * (geom[p].e + q) + j);
-          if (f >= 0) HN[c.needle](3 * p + k, ncol_of[c.needle][f]) += w[q] * d[j];
+          const int ft = nd.freeIndex(6 * (ea + q) + j), fr = nd.freeIndex(6 * (ea + q) + 3 + j);
+          if (ft >= 0) HN[c.needle](3 * p + k, ncol_of[c.needle][ft]) += wt[q] * d[j];
+          if (fr >= 0) HN[c.needle](3 * p + k, ncol_of[c.needle][fr]) += rot[j];
         }
+      }
     }
   }
 
@@ -295,10 +344,21 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
       if (geom[p].e != 0) continue;
       const NeedleBody& nd = *needles_[c.needle];
       const Vec3 vb = nd.velocities().head<3>() + nd.velocityChange().head<3>();
-      u_free.segment<3>(3 * p) += c.frame.transpose() * ((1 - geom[p].xi) * vb);
+      const Vec3 wb = nd.velocities().segment<3>(3) + nd.velocityChange().segment<3>(3);
+      const double xi = geom[p].xi, x2 = xi * xi, x3 = x2 * xi;
+      const double l = (nd.state().p[1] - nd.state().p[0]).norm();
+      const Vec3 vpoint = (2 * x3 - 3 * x2 + 1) * vb +
+                          (x3 - 2 * x2 + xi) * l * wb.cross(nd.state().q[0] * nd.beam().restDirection());
+      u_free.segment<3>(3 * p) += c.frame.transpose() * vpoint;
     }
   }
 
+  // A tiny compliance on every row (1e-8 of the largest diagonal entry) keeps W positive
+  // definite when shaft points closer together than the nodes make rows redundant.
+  {
+    const double eps = 1e-8 * W.diagonal().maxCoeff();
+    W.diagonal().array() += eps;
+  }
   // 4. Projected Gauss-Seidel, warm-started from the last multipliers.
   std::vector<ContactConstraint*> cs;
   VecX lambda(m);

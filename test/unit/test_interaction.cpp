@@ -1,0 +1,223 @@
+// Needle-tissue interaction on the paper's phantom (8x4x4 unless stated): puncture threshold,
+// friction and withdrawal, the Coulomb law on the multipliers, action = reaction, mesh
+// convergence of the probe displacements.
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <map>
+
+#include "needle_sim/contact/shaft_constraint.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/simulation.hpp"
+
+using namespace needle_sim;
+
+namespace {
+const std::string kScene = std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/phantom_insertion_8x4x4.yaml";
+
+Scene phantom(std::vector<std::string> sets) { return loadScene(kScene, sets); }
+
+// The needle tilted in the x-y plane by `deg` degrees, its tip 3 mm in front of the left
+// face at the centre; base motion: advance `depth` + 3 mm in T seconds while the base shifts
+// `shift` sideways (bending the needle), hold, withdraw along the same path.
+std::vector<std::string> tiltedInsertion(double depth, double shift, double T, double dt) {
+  const double a = 5.0 * M_PI / 180;
+  const Vec3 d(std::cos(a), std::sin(a), 0);
+  const Vec3 tip0 = Vec3(0, 0.01, 0.01) - 0.003 * d;
+  const Vec3 base0 = tip0 - 0.032 * d;
+  const Vec3 base1 = base0 + (depth + 0.003) * d + Vec3(0, shift, 0);
+  auto num = [](double x) {
+    char b[40];
+    std::snprintf(b, sizeof b, "%.17g", x);
+    return std::string(b);
+  };
+  auto v = [&](const Vec3& p) { return "[" + num(p[0]) + "," + num(p[1]) + "," + num(p[2]) + "]"; };
+  const std::string dir = v(d);
+  return {"needle.base.position=" + v(base0), "needle.base.direction=" + dir,
+          "needle.motion=[{t: 0, position: " + v(base0) + ", direction: " + dir + "}, {t: " + std::to_string(T) +
+              ", position: " + v(base1) + ", direction: " + dir + "}, {t: " + std::to_string(T + 0.1) +
+              ", position: " + v(base1) + ", direction: " + dir + "}, {t: " + std::to_string(2 * T + 0.1) +
+              ", position: " + v(base0) + ", direction: " + dir + "}]",
+          "time.dt=" + std::to_string(dt), "time.duration=" + std::to_string(2 * T + 0.4)};
+}
+
+const ContactConstraint* find(const Simulation& sim, ConstraintKind k) {
+  for (const auto& c : sim.interaction()->constraints())
+    if (c->kind() == k) return c.get();
+  return nullptr;
+}
+}  // namespace
+
+// Pressed on the surface below the puncture strength, the needle indents the tissue and,
+// withdrawn, leaves it as it was; no constraint work is done before contact.
+TEST(Interaction, BelowPunctureForceIndentsAndComesBack) {
+  Simulation sim(phantom({"interaction.puncture_force=100",
+                          "needle.motion=[{t: 0, advance: 0}, {t: 0.31, advance: 0.00305}, {t: 0.62, advance: 0}]",
+                          "time.duration=1.2"}));
+  double max_push = 0, max_force = 0;
+  bool contact = false;
+  for (long k = 0; k < sim.scene().numSteps(); ++k) {
+    const StepStats& st = sim.step();
+    const auto s = sim.interaction()->state(0);
+    ASSERT_NE(s, InsertionState::Punctured);
+    ASSERT_NE(s, InsertionState::Inserted);
+    if (st.constraint_points == 0) EXPECT_EQ(st.constraint_iterations, 0);  // nothing to solve: skipped
+    if (const auto* c = find(sim, ConstraintKind::Puncture)) {
+      contact = true;
+      max_force = std::max(max_force, c->lambda[0]);
+    }
+    max_push = std::max(max_push, sim.probeDisplacement(0).x());
+  }
+  EXPECT_TRUE(contact);
+  EXPECT_GT(max_force, 0.05);
+  EXPECT_GT(max_push, 1e-7);  // the tissue was pushed in along the needle
+  EXPECT_EQ(sim.interaction()->state(0), InsertionState::Approaching);
+  EXPECT_LT(sim.probeDisplacement(0).norm(), 1e-3 * max_push);
+}
+
+// Above the strength: puncture, at a force equal to the threshold within one step's increase.
+TEST(Interaction, PunctureHappensAtTheThreshold) {
+  Simulation sim(phantom({"time.duration=0.5"}));
+  std::vector<double> forces;
+  for (long k = 0; k < sim.scene().numSteps(); ++k) {
+    sim.step();
+    if (const auto* c = find(sim, ConstraintKind::Puncture)) forces.push_back(c->lambda[0]);
+    if (sim.interaction()->state(0) == InsertionState::Punctured) break;
+  }
+  ASSERT_EQ(sim.interaction()->state(0), InsertionState::Punctured);
+  const double threshold = sim.scene().interaction->puncture_force;
+  const double fp = sim.interaction()->punctureForce(0);
+  ASSERT_GE(forces.size(), 1u);
+  const double before = forces.size() >= 2 ? forces[forces.size() - 2] : 0.0;  // last force in contact
+  EXPECT_GE(fp, threshold);
+  EXPECT_LT(before, threshold);
+  EXPECT_LE(fp - threshold, fp - before);  // within one step's increment
+  EXPECT_NE(find(sim, ConstraintKind::Tip), nullptr);
+}
+
+namespace {
+struct WithdrawalRun {
+  double max_disp = 0;           // largest probe displacement during the run
+  Vec3 disp_end_hold = Vec3::Zero();
+  Vec3 disp_withdrawn = Vec3::Zero();
+  double push = 0, pull = 0;     // base force along the axis: max while inserting, min while withdrawing
+  double min_axial_withdrawal = 0;  // probe displacement along the axis while withdrawing (dragged out: < 0)
+  int max_points = 0;
+  double max_cone_violation = 0; // shaft points: |lambda_ax| - mu |lambda_lat|
+  int slips = 0, slips_on_cone = 0;
+  double max_force_imbalance = 0;
+};
+
+WithdrawalRun insertAndWithdraw(double friction) {
+  const double T = 1.3, dt = 0.002;
+  auto sets = tiltedInsertion(0.01, 0.001, T, dt);
+  sets.push_back("interaction.friction=" + std::to_string(friction));
+  Simulation sim(phantom(sets));
+  const Vec3 axis = sim.scene().needles[0].base_direction;
+  WithdrawalRun r;
+  const double mu = friction;
+  std::map<const ContactConstraint*, std::pair<double, Vec3>> last;  // s and lambda of the previous step
+  for (long k = 0; k < sim.scene().numSteps(); ++k) {
+    const double t = sim.time();
+    sim.step();
+    const auto* in = sim.interaction();
+    // The probe nearest the path, 2.5 mm deep.
+    const Vec3 u = sim.probeDisplacement(0);
+    r.max_disp = std::max(r.max_disp, u.norm());
+    if (std::abs(t - (T + 0.1)) < dt / 2) r.disp_end_hold = u;
+    const double fa = sim.needle(0).baseForce().dot(axis);
+    if (t > 0.5 && t < T) r.push = std::max(r.push, fa);
+    if (t > T + 0.2 && t < 2 * T) r.pull = std::min(r.pull, fa);
+    if (t > T + 0.1 && t < 2 * T + 0.1) r.min_axial_withdrawal = std::min(r.min_axial_withdrawal, u.dot(axis));
+    r.max_points = std::max(r.max_points, in->activePoints(0));
+    // Action and reaction.
+    const Vec3 fn = in->forceOnNeedle(0), ft = in->forceOnTissue();
+    double scale = 0;
+    std::map<const ContactConstraint*, std::pair<double, Vec3>> now;
+    for (const auto& c : in->constraints()) {
+      scale = std::max(scale, c->lambda.norm());
+      if (c->kind() != ConstraintKind::Shaft) continue;
+      const double lat = std::hypot(c->lambda[1], c->lambda[2]);
+      r.max_cone_violation = std::max(r.max_cone_violation, std::abs(c->lambda[0]) - mu * lat * (1 + 1e-9));
+      now[c.get()] = {c->s, c->lambda};
+    }
+    r.max_force_imbalance = std::max(r.max_force_imbalance, (fn + ft).norm() / std::max(scale, 1e-30));
+    // Slip during the previous step: the needle point of a shaft point moved along the needle.
+    for (const auto& [ptr, sl] : now) {
+      auto it = last.find(ptr);
+      if (it == last.end()) continue;
+      const double slip = std::abs(sl.first - it->second.first);
+      const Vec3& l = it->second.second;
+      const double lat = std::hypot(l[1], l[2]);
+      // Slip: the point moved along the needle by more than 5 % of the base's motion in a
+      // step (2e-5 m); smaller apparent motions come from the needle's bending and
+      // compression changing the closest point. On the cone: to the solver's tolerance
+      // (1e-8 of the 0.05 N force scale, times 10).
+      if (slip > 1e-6) {
+        ++r.slips;
+        if (std::abs(l[0]) >= mu * lat - 10 * 1e-8 * 0.05) ++r.slips_on_cone;
+      }
+    }
+    last = now;
+  }
+  r.disp_withdrawn = sim.probeDisplacement(0);
+  return r;
+}
+}  // namespace
+
+// Friction 0: withdrawal leaves the tissue where it was. Friction 0.3: the tissue is dragged
+// out with the needle, the holder pushes in while inserting and pulls while withdrawing; slip
+// happens on the Coulomb cone and no multiplier leaves it; constraint forces on needle and
+// tissue are equal and opposite.
+TEST(Interaction, WithdrawalWithAndWithoutFriction) {
+  const WithdrawalRun f0 = insertAndWithdraw(0.0);
+  EXPECT_GT(f0.max_points, 5);
+  std::printf("friction 0: max |u| %.3e, min axial while withdrawing %.3e\n", f0.max_disp, f0.min_axial_withdrawal);
+  EXPECT_GT(f0.max_disp, 1e-7);
+  EXPECT_LT(f0.disp_withdrawn.norm(), 1e-3 * f0.max_disp);
+  EXPECT_LT(f0.max_force_imbalance, 1e-12);
+
+  // Without friction the tissue only rebounds elastically past its rest position when the
+  // needle's push stops (a few percent); with friction it is dragged out (below).
+  EXPECT_GT(f0.min_axial_withdrawal, -0.2 * f0.max_disp);
+
+  const WithdrawalRun f3 = insertAndWithdraw(0.3);
+  EXPECT_GT(f3.push, 0);  // the holder pushes while inserting ...
+  EXPECT_LT(f3.pull, 0);  // ... and pulls against friction while withdrawing
+  // The tissue is dragged out with the needle during withdrawal, then relaxes once it is out.
+  EXPECT_LT(f3.min_axial_withdrawal, -0.5 * f3.disp_end_hold.dot(Vec3(std::cos(0.0872665), std::sin(0.0872665), 0)));
+  EXPECT_LT(f3.disp_withdrawn.norm(), 1e-3 * f3.max_disp);
+  std::printf("friction 0.3: max |u| %.3e, end of hold %.3e, min axial while withdrawing %.3e, push %.3e, pull %.3e, slips %d\n",
+              f3.max_disp, f3.disp_end_hold.norm(), f3.min_axial_withdrawal, f3.push, f3.pull, f3.slips);
+  EXPECT_LE(f3.max_cone_violation, 1e-15);
+  EXPECT_GT(f3.slips, 10);
+  EXPECT_EQ(f3.slips_on_cone, f3.slips);
+  EXPECT_LT(f3.max_force_imbalance, 1e-12);
+}
+
+// The paper's observation: probe displacements converge with mesh refinement. A shorter
+// insertion (5 mm past the surface, dt = 5 ms) keeps the 32x16x16 run short. Compared: the
+// radial probes 1A..1E (1.5 to 7.5 mm off the path). Probes 1..7 sit on the path itself, on
+// the line of constraint point forces, where the exact field is singular and the FE values
+// near the tip need not converge pointwise (they grow with refinement, as the paper notes).
+TEST(Interaction, ProbeDisplacementsConvergeWithMeshRefinement) {
+  std::vector<std::vector<Vec3>> result;
+  for (const char* cells : {"[8,4,4]", "[16,8,8]", "[32,16,16]"}) {
+    Simulation sim(phantom({std::string("tissue.grid.cells=") + cells, "time.dt=0.005", "time.duration=0.8",
+                            "needle.motion=[{t: 0, advance: 0}, {t: 0.8, advance: 0.008}]"}));
+    for (long k = 0; k < sim.scene().numSteps(); ++k) sim.step();
+    EXPECT_EQ(sim.interaction()->state(0), InsertionState::Inserted) << cells;
+    std::vector<Vec3> u;
+    for (int i = 0; i < sim.numProbes(); ++i)
+      if (sim.probeName(i).size() == 3) u.push_back(sim.probeDisplacement(i));  // p1A ... p1E
+    result.push_back(u);
+  }
+  auto diff = [&](int a, int b) {
+    double d = 0;
+    for (size_t i = 0; i < result[a].size(); ++i) d += (result[a][i] - result[b][i]).squaredNorm();
+    return std::sqrt(d);
+  };
+  const double d1 = diff(0, 1), d2 = diff(1, 2);
+  EXPECT_GT(d1, 0);
+  EXPECT_LT(d2, d1) << "8->16: " << d1 << ", 16->32: " << d2;
+}
