@@ -46,8 +46,10 @@ class NeedleBody {
   const DofMap& dofs() const { return dofs_; }
   void addVelocityChangeFree(const VecX& d);
   void commit(double t, double h);
-  // X = A^-1 E_S for the given free DOFs, from this step's factorisation.
-  void complianceColumns(const std::vector<int>& free_dofs, Eigen::MatrixXd& X) const;
+  // C = [A^-1]_{S,S} for the given free DOFs, from this step's factorisation, and the
+  // correction dv_free += A^-1 E_S c with the same columns.
+  void complianceBlock(const std::vector<int>& free_dofs, Eigen::MatrixXd& C);
+  void addInverseColumns(const std::vector<int>& free_dofs, const VecX& c);
   // Equilibrium with the base at the pose commanded for time t.
   StepStats solveStatic(double t);
 
@@ -80,6 +82,7 @@ class NeedleBody {
   CholmodSolver chol_;
   std::vector<Mat12> Ke_;
   VecX dv_;
+  Eigen::MatrixXd columns_;  // A^-1 E_S of the last complianceBlock
   Vec3 base_target_p_ = Vec3::Zero();
   Eigen::Quaterniond base_target_q_ = Eigen::Quaterniond::Identity();
   Vec3 base_force_ = Vec3::Zero(), base_moment_ = Vec3::Zero();

@@ -8,6 +8,7 @@
 // Static solve: Newton on the corotational forces, K(x) dx = f(x) + f_ext, to equilibrium.
 // Prescribed DOFs keep their position and zero velocity; they are not unknowns.
 #include <memory>
+#include <unordered_map>
 #include <vector>
 
 #include "needle_sim/core/types.hpp"
@@ -61,9 +62,12 @@ class TissueBody {
   void addVelocityChangeFree(const VecX& d) { dv_free_ += d; }
   // Applies the velocity change: v += dv, x += h v.
   void commit(double h);
-  // Columns of the inverse system matrix of the last solve for the given free DOFs:
-  // X = A^-1 E_S (n_free x |S|), from the body's factorisation (the constraint compliance).
-  void complianceColumns(const std::vector<int>& free_dofs, Eigen::MatrixXd& X) const;
+  // Compliance of the given free DOFs from the body's factorisation: C = [A^-1]_{S,S}.
+  // Columns of A^-1 are cached while the factor stays the same (a stale factor serves many
+  // steps), so a step only solves for DOFs it has not seen since the last refactorisation.
+  void complianceBlock(const std::vector<int>& free_dofs, Eigen::MatrixXd& C) const;
+  // dv_free += A^-1 E_S c, with the same (cached) columns: the constraint correction.
+  void addInverseColumns(const std::vector<int>& free_dofs, const VecX& c);
   // Newton to equilibrium; throws NumericalError when it does not converge.
   StepStats solveStatic();
 
@@ -87,6 +91,10 @@ class TissueBody {
   std::unique_ptr<SystemSolver> solver_;
   VecX rest_, x_, v_, f_ext_, mass_, mass_free_;
   VecX dv_free_;  // last increment: warm start for CG
+  const VecX& column(int free_dof) const;
+  void cacheColumns(const std::vector<int>& free_dofs) const;
+  mutable std::unordered_map<int, VecX> columns_;
+  mutable long columns_version_ = -1;
 };
 
 }  // namespace needle_sim

@@ -254,6 +254,7 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
     const auto& c = *constraints_[p];
     for (int a = 0; a < 8; ++a)
       for (int d = 0; d < 3; ++d) {
+        if (std::abs(c.tissue.weights[a]) < 1e-12) continue;  // e.g. a point on an element edge
         const int f = tdofs.freeIndex(3 * mesh.element(c.tissue.element)[a] + d);
         if (f >= 0 && column_of_[f] < 0) {
           column_of_[f] = static_cast<int>(tcols.size());
@@ -282,6 +283,7 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
       const Vec3 d = c.frame.col(k);
       for (int a = 0; a < 8; ++a)
         for (int j = 0; j < 3; ++j) {
+          if (std::abs(c.tissue.weights[a]) < 1e-12) continue;
           const int f = tdofs.freeIndex(3 * mesh.element(c.tissue.element)[a] + j);
           if (f >= 0) HT(3 * p + k, column_of_[f]) -= c.tissue.weights[a] * d[j];
         }
@@ -305,20 +307,15 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
   }
 
   // 3. Compliance from each body's factor; free velocities of the rows.
-  Eigen::MatrixXd XT, W = Eigen::MatrixXd::Zero(m, m);
-  tissue_.complianceColumns(tcols, XT);
-  {
-    Eigen::MatrixXd C(tcols.size(), tcols.size());
-    for (size_t i = 0; i < tcols.size(); ++i) C.row(static_cast<Eigen::Index>(i)) = XT.row(tcols[i]);
-    W.noalias() += HT * C * HT.transpose();
+  Eigen::MatrixXd C, W = Eigen::MatrixXd::Zero(m, m);
+  if (!tcols.empty()) {
+    tissue_.complianceBlock(tcols, C);
+    W.noalias() += HT * (C * HT.transpose());
   }
-  std::vector<Eigen::MatrixXd> XN(needles_.size());
   for (size_t n = 0; n < needles_.size(); ++n) {
     if (ncols[n].empty()) continue;
-    needles_[n]->complianceColumns(ncols[n], XN[n]);
-    Eigen::MatrixXd C(ncols[n].size(), ncols[n].size());
-    for (size_t i = 0; i < ncols[n].size(); ++i) C.row(static_cast<Eigen::Index>(i)) = XN[n].row(ncols[n][i]);
-    W.noalias() += HN[n] * C * HN[n].transpose();
+    needles_[n]->complianceBlock(ncols[n], C);
+    W.noalias() += HN[n] * (C * HN[n].transpose());
   }
   W *= h;
   VecX u_free = VecX::Zero(m);
@@ -377,9 +374,9 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
   for (int p = 0; p < np; ++p) constraints_[p]->lambda = lambda.segment<3>(3 * p);
 
   // 5. Corrections dv = h A^-1 H^T lambda for each body.
-  tissue_.addVelocityChangeFree(h * (XT * (HT.transpose() * lambda)));
+  if (!tcols.empty()) tissue_.addInverseColumns(tcols, h * (HT.transpose() * lambda));
   for (size_t n = 0; n < needles_.size(); ++n)
-    if (!ncols[n].empty()) needles_[n]->addVelocityChangeFree(h * (XN[n] * (HN[n].transpose() * lambda)));
+    if (!ncols[n].empty()) needles_[n]->addInverseColumns(ncols[n], h * (HN[n].transpose() * lambda));
   for (int f : tcols) column_of_[f] = -1;
   st.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   return st;

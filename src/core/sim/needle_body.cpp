@@ -150,10 +150,17 @@ void NeedleBody::addVelocityChangeFree(const VecX& d) {
   for (int k = 0; k < dofs_.numFree(); ++k) dv_[dofs_.freeToFull()[k]] += d[k];
 }
 
-void NeedleBody::complianceColumns(const std::vector<int>& free_dofs, Eigen::MatrixXd& X) const {
-  Eigen::MatrixXd E = Eigen::MatrixXd::Zero(dofs_.numFree(), static_cast<Eigen::Index>(free_dofs.size()));
-  for (size_t j = 0; j < free_dofs.size(); ++j) E(free_dofs[j], static_cast<Eigen::Index>(j)) = 1.0;
-  chol_.solve(E, X);
+void NeedleBody::complianceBlock(const std::vector<int>& free_dofs, Eigen::MatrixXd& C) {
+  const auto k = static_cast<Eigen::Index>(free_dofs.size());
+  Eigen::MatrixXd E = Eigen::MatrixXd::Zero(dofs_.numFree(), k);
+  for (Eigen::Index j = 0; j < k; ++j) E(free_dofs[j], j) = 1.0;
+  chol_.solve(E, columns_);
+  C.resize(k, k);
+  for (Eigen::Index i = 0; i < k; ++i) C.row(i) = columns_.row(free_dofs[i]);
+}
+
+void NeedleBody::addInverseColumns(const std::vector<int>& free_dofs, const VecX& c) {
+  addVelocityChangeFree(columns_ * c);
 }
 
 void NeedleBody::commit(double /*t*/, double h) {

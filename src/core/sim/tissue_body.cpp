@@ -114,10 +114,39 @@ void TissueBody::commit(double h) {
   x_ += h * v_;
 }
 
-void TissueBody::complianceColumns(const std::vector<int>& free_dofs, Eigen::MatrixXd& X) const {
-  Eigen::MatrixXd E = Eigen::MatrixXd::Zero(dofs_.numFree(), static_cast<Eigen::Index>(free_dofs.size()));
-  for (size_t j = 0; j < free_dofs.size(); ++j) E(free_dofs[j], static_cast<Eigen::Index>(j)) = 1.0;
+void TissueBody::cacheColumns(const std::vector<int>& free_dofs) const {
+  const long version = solver_->factor().factorizations();
+  if (version != columns_version_) {
+    columns_.clear();
+    columns_version_ = version;
+  }
+  std::vector<int> missing;
+  for (int f : free_dofs)
+    if (!columns_.count(f)) missing.push_back(f);
+  if (missing.empty()) return;
+  Eigen::MatrixXd E = Eigen::MatrixXd::Zero(dofs_.numFree(), static_cast<Eigen::Index>(missing.size()));
+  for (size_t j = 0; j < missing.size(); ++j) E(missing[j], static_cast<Eigen::Index>(j)) = 1.0;
+  Eigen::MatrixXd X;
   solver_->factor().solve(E, X);
+  for (size_t j = 0; j < missing.size(); ++j) columns_[missing[j]] = X.col(static_cast<Eigen::Index>(j));
+}
+
+const VecX& TissueBody::column(int f) const { return columns_.at(f); }
+
+void TissueBody::complianceBlock(const std::vector<int>& free_dofs, Eigen::MatrixXd& C) const {
+  cacheColumns(free_dofs);
+  const auto k = static_cast<Eigen::Index>(free_dofs.size());
+  C.resize(k, k);
+  for (Eigen::Index j = 0; j < k; ++j) {
+    const VecX& col = column(free_dofs[j]);
+    for (Eigen::Index i = 0; i < k; ++i) C(i, j) = col[free_dofs[i]];
+  }
+}
+
+void TissueBody::addInverseColumns(const std::vector<int>& free_dofs, const VecX& c) {
+  cacheColumns(free_dofs);
+  for (size_t j = 0; j < free_dofs.size(); ++j)
+    if (c[static_cast<Eigen::Index>(j)] != 0) dv_free_.noalias() += c[static_cast<Eigen::Index>(j)] * column(free_dofs[j]);
 }
 
 StepStats TissueBody::freeMotion(double h) {
