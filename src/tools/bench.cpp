@@ -19,13 +19,21 @@ namespace {
 
 struct Timing {
   int dofs = 0;
-  Percentiles total, forces, assemble, factor, solve;
+  Percentiles total, forces, assemble, factor, solve, constraint;
+  int max_points = 0;
+  std::vector<std::pair<int, double>> points_ms;  // (constraint points, step ms) per timed step
+  std::vector<double> constraint_ms;
   double iterations_mean = 0;
   long factorizations = 0;
   std::vector<std::vector<Vec3>> probes;  // per step, per probe
 };
 
+// steps == 0: every step of the scene, no warm-up.
 Timing timeScene(const Scene& scene, int warmup, int steps) {
+  if (steps == 0) {
+    warmup = 0;
+    steps = static_cast<int>(scene.numSteps());
+  }
   Simulation sim(scene);
   Timing t;
   t.dofs = sim.numDofs();
@@ -46,7 +54,11 @@ Timing timeScene(const Scene& scene, int warmup, int steps) {
     solve.push_back(s.solve_ms);
     iterations += s.linear_iterations;
     t.factorizations += s.factorizations;
+    t.constraint_ms.push_back(s.constraint_ms);
+    t.points_ms.emplace_back(s.constraint_points, ms);
+    t.max_points = std::max(t.max_points, s.constraint_points);
   }
+  t.constraint = percentiles(t.constraint_ms);
   t.total = percentiles(total);
   t.forces = percentiles(forces);
   t.assemble = percentiles(assemble);
@@ -81,6 +93,55 @@ int benchNeedles(const BenchOptions& o, const Scene& scene) {
   return 0;
 }
 
+// Scenes with a needle-tissue interaction: whole-scene timing with the constraint phase.
+int benchInteraction(const BenchOptions& o, const std::vector<std::string>& cells) {
+  static const std::regex cells_re("([0-9]+)x([0-9]+)x([0-9]+)");
+  std::printf("needle_sim bench: %s, %s (times in ms)\n", o.scene.c_str(),
+              o.steps == 0 ? "every step of the scene" : "timed steps after warm-up");
+  std::printf("| grid | DOFs | steps | step median | step p95 | step max | constraint phase median | constraint share "
+              "| max constraint points | step median at >= 40 points | constraint share at >= 40 points |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|\n");
+  nlohmann::json out = nlohmann::json::array();
+  for (const auto& c : cells) {
+    std::smatch m;
+    if (!std::regex_match(c, m, cells_re)) throw InputError("", "--cells", "'" + c + "' is not of the form NXxNYxNZ");
+    std::vector<std::string> sets = o.sets;
+    sets.push_back("tissue.grid.cells=[" + m[1].str() + "," + m[2].str() + "," + m[3].str() + "]");
+    const Scene scene = loadScene(o.scene, sets);
+    const Timing t = timeScene(scene, o.warmup, o.steps);
+    std::vector<double> many, many_c;
+    double sum_total = 0, sum_c = 0;
+    for (size_t k = 0; k < t.points_ms.size(); ++k) {
+      sum_total += t.points_ms[k].second;
+      sum_c += t.constraint_ms[k];
+      if (t.points_ms[k].first >= 40) {
+        many.push_back(t.points_ms[k].second);
+        many_c.push_back(t.constraint_ms[k] / t.points_ms[k].second);
+      }
+    }
+    const Percentiles pm = percentiles(many), pc = percentiles(many_c);
+    std::printf("| %s | %d | %zu | %.3f | %.3f | %.3f | %.3f | %.0f %% | %d | %s | %s |\n", c.c_str(), t.dofs,
+                t.points_ms.size(), t.total.median, t.total.p95, t.total.max, t.constraint.median,
+                100 * sum_c / std::max(sum_total, 1e-300), t.max_points,
+                many.empty() ? "-" : (std::to_string(pm.median).substr(0, 5)).c_str(),
+                many.empty() ? "-" : (std::to_string(static_cast<int>(100 * pc.median)) + " %").c_str());
+    std::fflush(stdout);
+    out.push_back({{"grid", c},
+                   {"dofs", t.dofs},
+                   {"steps", t.points_ms.size()},
+                   {"step_ms", {{"median", t.total.median}, {"p95", t.total.p95}, {"max", t.total.max}}},
+                   {"constraint_ms_median", t.constraint.median},
+                   {"constraint_share", sum_c / std::max(sum_total, 1e-300)},
+                   {"max_points", t.max_points},
+                   {"step_ms_median_at_40_points", many.empty() ? 0.0 : pm.median}});
+  }
+  if (!o.json_out.empty()) {
+    std::ofstream f(o.json_out);
+    f << std::setw(2) << out << '\n';
+  }
+  return 0;
+}
+
 int benchCommand(const BenchOptions& o) {
   static const std::regex cells_re("([0-9]+)x([0-9]+)x([0-9]+)");
   {
@@ -88,6 +149,7 @@ int benchCommand(const BenchOptions& o) {
     sets.push_back("solver.mode=dynamic");
     const Scene scene = loadScene(o.scene, sets);
     if (!scene.has_tissue) return benchNeedles(o, scene);
+    if (scene.interaction) return benchInteraction(o, o.cells);
   }
   nlohmann::json out = nlohmann::json::array();
   std::printf("needle_sim bench: %s, %d timed steps after %d warm-up steps (times in ms)\n", o.scene.c_str(), o.steps,

@@ -140,7 +140,7 @@ int main(int argc, char** argv) {
                                            "phantom), or a needles-only scene (median, split by phase)");
   bench->add_option("--scene", bench_opts.scene, "scene to time")->capture_default_str();
   bench->add_option("--cells", bench_opts.cells, "grids to time, e.g. 8x4x4 16x8x8")->capture_default_str();
-  bench->add_option("--steps", bench_opts.steps, "timed steps per grid")->capture_default_str();
+  bench->add_option("--steps", bench_opts.steps, "timed steps per grid (0: every step of the scene)")->capture_default_str();
   bench->add_option("--warmup", bench_opts.warmup, "untimed steps first")->capture_default_str();
   bench->add_option("--set", bench_opts.sets, "override a scene value (repeatable)");
   bench->add_flag("--compare-direct", bench_opts.compare_direct,

@@ -135,3 +135,30 @@ TEST(Cli, NeedleRunWritesTipBaseReactionAndCenterline) {
   while (std::getline(cl, line)) ++rows;
   EXPECT_EQ(rows, 50 * 21);
 }
+
+// The plot script draws PNG files from the runs' time series.
+TEST(Cli, PlotScriptWritesPngFiles) {
+  std::vector<fs::path> runs;
+  for (const char* cells : {"[8,4,4]", "[16,8,8]"}) {
+    const fs::path out = freshDir(std::string("plot") + cells[1]);
+    const Result r = runTool("run '" + kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml' --out '" + out.string() +
+                             "' --quiet --set time.duration=0.4 --set tissue.grid.cells=" + cells);
+    ASSERT_EQ(r.status, 0) << r.err;
+    runs.push_back(out);
+  }
+  const fs::path png = freshDir("plots");
+  const std::string cmd = "/usr/bin/python3 '" + kSrc + "/scripts/plot_probes.py' '" + runs[0].string() + "' '" +
+                          runs[1].string() + "' --out '" + png.string() + "' > /dev/null";
+  ASSERT_EQ(std::system(cmd.c_str()), 0);
+  for (const char* f : {"probe_p1.png", "probe_p1E.png", "probes_along_path.png", "probes_radial.png"}) {
+    std::ifstream in(png / f, std::ios::binary);
+    char magic[8] = {};
+    in.read(magic, 8);
+    EXPECT_EQ(std::string(magic + 1, 3), "PNG") << f;
+  }
+  // A directory without results is a clear error, not a crash.
+  const std::string bad = "/usr/bin/python3 '" + kSrc + "/scripts/plot_probes.py' /nonexistent --out '" +
+                          png.string() + "' 2>/dev/null";
+  const int raw = std::system(bad.c_str());
+  EXPECT_EQ(WEXITSTATUS(raw), 1);
+}

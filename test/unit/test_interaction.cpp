@@ -221,3 +221,31 @@ TEST(Interaction, ProbeDisplacementsConvergeWithMeshRefinement) {
   EXPECT_GT(d1, 0);
   EXPECT_LT(d2, d1) << "8->16: " << d1 << ", 16->32: " << d2;
 }
+
+// Cannula and electrode (the DBS protocol on the phantom): the electrode rides inside the
+// cannula without touching the tissue; when the cannula is withdrawn the shaft points pass
+// to the electrode, whose tip is tied where it comes out; the electrode stays in place.
+TEST(Interaction, ShaftPointsPassFromCannulaToElectrode) {
+  Simulation sim(loadScene(std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/phantom_cannula_electrode.yaml"));
+  ASSERT_EQ(sim.numNeedles(), 2);
+  const auto* in = sim.interaction();
+  int max_cannula = 0;
+  for (long k = 0; k < sim.scene().numSteps(); ++k) {
+    sim.step();
+    const double t = sim.time();
+    if (t < 1.2) {
+      EXPECT_EQ(in->activePoints(1), 0) << "t = " << t;  // sheathed: no contact of its own
+      max_cannula = std::max(max_cannula, in->activePoints(0));
+    }
+  }
+  EXPECT_GE(max_cannula, 7);  // 8 mm of cut path, a point per mm
+  EXPECT_EQ(in->state(0), InsertionState::Out);
+  EXPECT_EQ(in->activePoints(0), 0);
+  EXPECT_EQ(in->state(1), InsertionState::Inserted);
+  EXPECT_GE(in->activePoints(1), max_cannula);  // the shaft points plus the electrode's tip
+  int tips = 0;
+  for (const auto& c : in->constraints()) tips += c->needle == 1 && c->kind() == ConstraintKind::Tip;
+  EXPECT_EQ(tips, 1);
+  // The electrode stays where it was put: 8 mm deep (the commanded 11 mm from 3 mm outside).
+  EXPECT_NEAR(sim.needle(1).tipPosition().x(), 0.008, 1e-5);
+}

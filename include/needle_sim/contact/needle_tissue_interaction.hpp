@@ -13,6 +13,12 @@
 // puncture strength, cutting (the tip anchor moves, shaft points are laid every
 // shaft_spacing along the cut path), withdrawal (tip released, shaft points only).
 // A step with no constraint costs one surface test per approaching needle.
+//
+// Several needles (cannula + electrode): a needle whose tip lies inside another needle's
+// lumen touches no tissue; shaft points released by a withdrawing needle pass to another
+// needle that runs through them; a needle whose tip comes out of its sheath inside the
+// tissue is tied there by a tip constraint (the electrode left in place). The electrode is
+// not coupled laterally to the cannula while inside it.
 #include <memory>
 #include <string>
 #include <vector>
@@ -62,7 +68,10 @@ class NeedleTissueInteraction {
     double puncture_force = std::numeric_limits<double>::quiet_NaN();
     Vec3 next_shaft_rest = Vec3::Zero();  // where the next shaft point goes (rest space)
     bool has_path = false;
+    bool sheathed = false;  // the tip is inside another needle's lumen (electrode in cannula)
   };
+  // Index of a needle whose lumen holds needle n's tip, or -1.
+  int sheathOf(int n) const;
   // Needle centre-line point at arc length s: element, parameter, position, unit axis.
   void needlePoint(int n, double s, int& e, double& xi, Vec3& p, Vec3& axis) const;
   double closestArcLength(int n, const Vec3& p) const;

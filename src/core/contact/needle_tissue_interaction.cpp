@@ -46,6 +46,7 @@ NeedleTissueInteraction::NeedleTissueInteraction(const InteractionSettings& s, T
       tracks_(needles_.size()),
       column_of_(tissue.dofs().numFree(), -1) {
   const HexMesh& mesh = tissue.mesh();
+  for (size_t n = 0; n < needles_.size(); ++n) tracks_[n].sheathed = sheathOf(static_cast<int>(n)) >= 0;
   node_elements_.resize(mesh.numNodes());
   for (int e = 0; e < mesh.numElements(); ++e)
     for (int a : mesh.element(e)) node_elements_[a].push_back(e);
@@ -146,6 +147,24 @@ bool NeedleTissueInteraction::locateCurrent(const Vec3& p, int hint, EmbeddedPoi
   return false;
 }
 
+int NeedleTissueInteraction::sheathOf(int n) const {
+  const Vec3 tip = needles_[n]->tipPosition();
+  for (size_t m = 0; m < needles_.size(); ++m) {
+    if (static_cast<int>(m) == n) continue;
+    const auto& sec = needles_[m]->beam().section();
+    if (!(sec.inner_radius > 0) || sec.inner_radius < needles_[n]->beam().section().outer_radius * (1 - 1e-9)) continue;
+    const double L = needles_[m]->beam().length();
+    const double s = closestArcLength(static_cast<int>(m), tip);
+    if (s <= 0 || s > L + 1e-3 * settings_.shaft_spacing) continue;
+    int e;
+    double xi;
+    Vec3 p, axis;
+    needlePoint(static_cast<int>(m), std::min(s, L), e, xi, p, axis);
+    if ((tip - p - axis * axis.dot(tip - p)).norm() <= sec.inner_radius) return static_cast<int>(m);
+  }
+  return -1;
+}
+
 // Lays shaft points every shaft_spacing along the cut path (in rest space) up to `upto`.
 void NeedleTissueInteraction::layShaftPoints(int n, const EmbeddedPoint& upto,
                                              std::vector<std::unique_ptr<ContactConstraint>>& out) {
@@ -174,8 +193,33 @@ void NeedleTissueInteraction::updateGeometry() {
     const NeedleBody& nd = *needles_[c->needle];
     const double L = nd.beam().length();
     if (c->kind() == ConstraintKind::Shaft) {
-      c->s = closestArcLength(c->needle, c->tissue.interpolate(mesh, x));
-      if (c->s >= L) continue;  // the needle has been withdrawn past it: release
+      const Vec3 pT = c->tissue.interpolate(mesh, x);
+      c->s = closestArcLength(c->needle, pT);
+      if (c->s >= L) {
+        // The needle has been withdrawn past it: pass it to another needle running through
+        // it (the electrode left by the cannula), or release it.
+        int to = -1;
+        for (size_t m = 0; m < needles_.size() && to < 0; ++m) {
+          if (static_cast<int>(m) == c->needle) continue;
+          const double sm = closestArcLength(static_cast<int>(m), pT);
+          if (sm <= 0 || sm >= needles_[m]->beam().length()) continue;
+          int e;
+          double xi;
+          Vec3 p, axis;
+          needlePoint(static_cast<int>(m), sm, e, xi, p, axis);
+          const double reach = nd.beam().section().outer_radius + needles_[m]->beam().section().outer_radius;
+          if ((pT - p - axis * axis.dot(pT - p)).norm() <= reach) {
+            to = static_cast<int>(m);
+            c->s = sm;
+          }
+        }
+        if (to < 0) continue;
+        c->needle = to;
+        c->lambda.setZero();
+        if (tracks_[to].state == InsertionState::Approaching || tracks_[to].state == InsertionState::Out)
+          tracks_[to].state = InsertionState::Inserted;
+        tracks_[to].has_path = true;
+      }
     } else {
       c->s = L;
     }
@@ -215,6 +259,7 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
   for (size_t n = 0; n < needles_.size(); ++n) {
     Track& tr = tracks_[n];
     if (tr.state != InsertionState::Approaching && tr.state != InsertionState::Out) continue;
+    if (tr.sheathed) continue;  // inside another needle: it meets no tissue
     const NeedleBody& nd = *needles_[n];
     const int tip = nd.beam().numNodes() - 1;
     const Vec3 p = nd.state().p[tip];
@@ -440,6 +485,27 @@ void NeedleTissueInteraction::afterCommit() {
       }
     }
     ++it;
+  }
+  // A needle whose tip comes out of its sheath inside the tissue is tied there.
+  for (size_t n = 0; n < needles_.size(); ++n) {
+    Track& tr = tracks_[n];
+    const bool sheathed = sheathOf(static_cast<int>(n)) >= 0;
+    if (tr.sheathed && !sheathed && (tr.state == InsertionState::Approaching || tr.state == InsertionState::Out ||
+                                     tr.state == InsertionState::Inserted)) {
+      bool has_tip = false;
+      for (const auto& c : constraints_) has_tip |= c->needle == static_cast<int>(n) && c->kind() == ConstraintKind::Tip;
+      EmbeddedPoint anchor;
+      if (!has_tip && locateCurrent(needles_[n]->tipPosition(), -1, anchor)) {
+        auto t = std::make_unique<TipConstraint>(settings_.friction, settings_.cutting_force);
+        t->tissue = anchor;
+        t->needle = static_cast<int>(n);
+        created.push_back(std::move(t));
+        tr.state = InsertionState::Inserted;
+        tr.has_path = true;
+        tr.next_shaft_rest = anchor.rest;
+      }
+    }
+    tr.sheathed = sheathed;
   }
   for (auto& c : created) constraints_.push_back(std::move(c));
   for (size_t n = 0; n < needles_.size(); ++n) {
