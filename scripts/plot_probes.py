@@ -1,4 +1,4 @@
-#!/usr/bin/env python3
+#!/usr/bin/python3
 """Probe displacement against step for several runs of the phantom insertion, like the
 paper's figures (Bui et al., Figs. "displacement along the needle" and "radial").
 
@@ -8,7 +8,7 @@ Sample run (after the three shipped insertion scenes have been run):
       build/devel/lib/needle_sim/needle_sim run config/scenes/phantom_insertion_$n.yaml \
           --out results/phantom_insertion_$n
     done
-    python3 scripts/plot_probes.py results/phantom_insertion_8x4x4 \
+    scripts/plot_probes.py results/phantom_insertion_8x4x4 \
         results/phantom_insertion_16x8x8 results/phantom_insertion_32x16x16 --out results/plots
 
 It writes one PNG per probe (displacement magnitude, and its component along the needle axis,

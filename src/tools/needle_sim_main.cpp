@@ -14,6 +14,7 @@
 #include <filesystem>
 #include <iostream>
 
+#include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/denormals.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/io/run_recorder.hpp"
@@ -120,6 +121,12 @@ int main(int argc, char** argv) {
   flushDenormalsToZero();
   CLI::App app{"needle_sim: real-time, error-controlled FE simulation of needle insertion (headless driver)"};
   app.require_subcommand(1);
+  int blas_threads = 1;
+  app.add_option("--blas-threads", blas_threads,
+                 "threads of the BLAS under CHOLMOD (1: predictable step times; 2 speeds up large "
+                 "factorisations)")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 64));
 
   std::string scene_path, out_dir;
   std::vector<std::string> sets;
@@ -150,6 +157,7 @@ int main(int argc, char** argv) {
   try {
     auto args = withoutRosArgs(argc, argv);
     app.parse(args);
+    setBlasThreads(blas_threads);
   } catch (const CLI::ParseError& e) {
     const int code = app.exit(e);
     return code == 0 ? 0 : kExitInput;

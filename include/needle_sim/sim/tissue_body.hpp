@@ -63,8 +63,10 @@ class TissueBody {
   // Applies the velocity change: v += dv, x += h v.
   void commit(double h);
   // Compliance of the given free DOFs from the body's factorisation: C = [A^-1]_{S,S}.
-  // Columns of A^-1 are cached while the factor stays the same (a stale factor serves many
-  // steps), so a step only solves for DOFs it has not seen since the last refactorisation.
+  // Columns of A^-1 are cached: a step solves only for DOFs it has not seen before, plus at
+  // most kColumnRefresh columns computed with an older factor (the oldest first), so that a
+  // refactorisation never costs hundreds of solves in one step. Columns of slightly
+  // different factors make C slightly unsymmetric: it is symmetrised.
   void complianceBlock(const std::vector<int>& free_dofs, Eigen::MatrixXd& C) const;
   // dv_free += A^-1 E_S c, with the same (cached) columns: the constraint correction.
   void addInverseColumns(const std::vector<int>& free_dofs, const VecX& c);
@@ -93,8 +95,12 @@ class TissueBody {
   VecX dv_free_;  // last increment: warm start for CG
   const VecX& column(int free_dof) const;
   void cacheColumns(const std::vector<int>& free_dofs) const;
-  mutable std::unordered_map<int, VecX> columns_;
-  mutable long columns_version_ = -1;
+  struct CachedColumn {
+    VecX x;
+    long version;  // factorisation it came from
+  };
+  static constexpr int kColumnRefresh = 8;
+  mutable std::unordered_map<int, CachedColumn> columns_;
 };
 
 }  // namespace needle_sim

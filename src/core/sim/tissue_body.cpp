@@ -1,5 +1,6 @@
 #include "needle_sim/sim/tissue_body.hpp"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -116,22 +117,33 @@ void TissueBody::commit(double h) {
 
 void TissueBody::cacheColumns(const std::vector<int>& free_dofs) const {
   const long version = solver_->factor().factorizations();
-  if (version != columns_version_) {
-    columns_.clear();
-    columns_version_ = version;
+  std::vector<int> todo;
+  std::vector<std::pair<long, int>> stale;
+  for (int f : free_dofs) {
+    auto it = columns_.find(f);
+    if (it == columns_.end()) todo.push_back(f);
+    else if (it->second.version != version) stale.emplace_back(it->second.version, f);
   }
-  std::vector<int> missing;
-  for (int f : free_dofs)
-    if (!columns_.count(f)) missing.push_back(f);
-  if (missing.empty()) return;
-  Eigen::MatrixXd E = Eigen::MatrixXd::Zero(dofs_.numFree(), static_cast<Eigen::Index>(missing.size()));
-  for (size_t j = 0; j < missing.size(); ++j) E(missing[j], static_cast<Eigen::Index>(j)) = 1.0;
+  // Evict columns no longer in use once the cache is much larger than the working set.
+  if (columns_.size() > 2 * free_dofs.size() + 64) {
+    std::unordered_map<int, CachedColumn> kept;
+    for (int f : free_dofs) {
+      auto it = columns_.find(f);
+      if (it != columns_.end()) kept.emplace(f, std::move(it->second));
+    }
+    columns_ = std::move(kept);
+  }
+  std::sort(stale.begin(), stale.end());
+  for (size_t k = 0; k < stale.size() && k < static_cast<size_t>(kColumnRefresh); ++k) todo.push_back(stale[k].second);
+  if (todo.empty()) return;
+  Eigen::MatrixXd E = Eigen::MatrixXd::Zero(dofs_.numFree(), static_cast<Eigen::Index>(todo.size()));
+  for (size_t j = 0; j < todo.size(); ++j) E(todo[j], static_cast<Eigen::Index>(j)) = 1.0;
   Eigen::MatrixXd X;
   solver_->factor().solve(E, X);
-  for (size_t j = 0; j < missing.size(); ++j) columns_[missing[j]] = X.col(static_cast<Eigen::Index>(j));
+  for (size_t j = 0; j < todo.size(); ++j) columns_[todo[j]] = {X.col(static_cast<Eigen::Index>(j)), version};
 }
 
-const VecX& TissueBody::column(int f) const { return columns_.at(f); }
+const VecX& TissueBody::column(int f) const { return columns_.at(f).x; }
 
 void TissueBody::complianceBlock(const std::vector<int>& free_dofs, Eigen::MatrixXd& C) const {
   cacheColumns(free_dofs);
@@ -141,6 +153,7 @@ void TissueBody::complianceBlock(const std::vector<int>& free_dofs, Eigen::Matri
     const VecX& col = column(free_dofs[j]);
     for (Eigen::Index i = 0; i < k; ++i) C(i, j) = col[free_dofs[i]];
   }
+  C = (0.5 * (C + C.transpose())).eval();
 }
 
 void TissueBody::addInverseColumns(const std::vector<int>& free_dofs, const VecX& c) {
