@@ -30,7 +30,7 @@ constexpr int kExitInput = 2;
 constexpr int kExitNumerical = 3;
 
 int runCommand(const std::string& scene_path, const std::string& out_dir, const std::vector<std::string>& sets,
-               bool quiet, bool centerline) {
+               bool quiet, const RunRecorder::Options& options) {
   Scene scene;
   std::unique_ptr<Simulation> sim;
   try {
@@ -42,7 +42,7 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   }
   std::unique_ptr<RunRecorder> rec;
   try {
-    rec = std::make_unique<RunRecorder>(*sim, out_dir, centerline);
+    rec = std::make_unique<RunRecorder>(*sim, out_dir, options);
   } catch (const std::exception& e) {
     std::cerr << "needle_sim: " << e.what() << '\n';
     return kExitInput;
@@ -130,13 +130,17 @@ int main(int argc, char** argv) {
 
   std::string scene_path, out_dir;
   std::vector<std::string> sets;
-  bool quiet = false, centerline = false;
+  bool quiet = false;
+  RunRecorder::Options rec_opts;
   auto* run = app.add_subcommand("run", "run a scene and write DIR/summary.json and DIR/timeseries.csv");
   run->add_option("scene", scene_path, "scene file (YAML)")->required();
   run->add_option("--out,-o", out_dir, "output directory")->required();
   run->add_option("--set", sets, "override a scene value: key.path=value (repeatable)");
   run->add_flag("--quiet,-q", quiet, "no progress on stderr");
-  run->add_flag("--centerline", centerline, "also write DIR/centerline.csv: every needle node at every step");
+  run->add_flag("--centerline", rec_opts.centerline, "also write DIR/centerline.csv: every needle node at every step");
+  run->add_flag("--error-estimate", rec_opts.error_estimate,
+                "SPR error estimate of the tissue every step (eta_global, eta_max, eta_relative columns)");
+  run->add_flag("--vtu", rec_opts.vtu, "also write DIR/tissue.vtu: the final mesh with displacement, von Mises stress, eta");
 
   auto* check = app.add_subcommand("check", "validate a scene (and build its mesh) without running it");
   check->add_option("scene", scene_path, "scene file (YAML)")->required();
@@ -163,7 +167,7 @@ int main(int argc, char** argv) {
     return code == 0 ? 0 : kExitInput;
   }
   try {
-    if (*run) return runCommand(scene_path, out_dir, sets, quiet, centerline);
+    if (*run) return runCommand(scene_path, out_dir, sets, quiet, rec_opts);
     if (*check) return checkCommand(scene_path, sets);
     if (*bench) return benchCommand(bench_opts);
   } catch (const InputError& e) {

@@ -162,3 +162,34 @@ TEST(Cli, PlotScriptWritesPngFiles) {
   const int raw = std::system(bad.c_str());
   EXPECT_EQ(WEXITSTATUS(raw), 1);
 }
+
+// Error outputs on request: eta columns every step and the final mesh as a VTU file that
+// parses as XML with one eta and one von Mises value per element.
+TEST(Cli, ErrorEstimateAndVtuOnRequest) {
+  const fs::path out = freshDir("vtu");
+  const Result r = runTool("run '" + kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml' --out '" + out.string() +
+                           "' --quiet --error-estimate --vtu --set time.duration=0.5");
+  ASSERT_EQ(r.status, 0) << r.err;
+  std::ifstream csv(out / "timeseries.csv");
+  std::string header;
+  std::getline(csv, header);
+  EXPECT_NE(header.find("eta_global,eta_max,eta_relative"), std::string::npos);
+  const std::string check =
+      "/usr/bin/python3 -c \"import sys, xml.etree.ElementTree as E; t = E.parse(sys.argv[1]); "
+      "p = t.find('.//Piece'); assert p.get('NumberOfCells') == '128'; "
+      "a = {d.get('Name'): d.text.split() for d in t.iter('DataArray')}; "
+      "assert len(a['eta']) == 128 and len(a['von_mises']) == 128 and len(a['connectivity']) == 8 * 128; "
+      "assert all(float(v) >= 0 for v in a['eta'])\" '" +
+      (out / "tissue.vtu").string() + "'";
+  EXPECT_EQ(std::system(check.c_str()), 0);
+  // Without the flags, no estimate is computed and no columns appear.
+  const fs::path plain = freshDir("novtu");
+  ASSERT_EQ(runTool("run '" + kSrc + "/config/scenes/phantom_8x4x4.yaml' --out '" + plain.string() +
+                    "' --quiet --set time.duration=0.01")
+                .status,
+            0);
+  std::ifstream csv2(plain / "timeseries.csv");
+  std::getline(csv2, header);
+  EXPECT_EQ(header.find("eta_"), std::string::npos);
+  EXPECT_FALSE(fs::exists(plain / "tissue.vtu"));
+}

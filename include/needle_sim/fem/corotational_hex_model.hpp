@@ -39,6 +39,9 @@ class CorotationalHexModel {
   // Extracts every element's rotation from the current positions x (3n).
   void updateRotations(const VecX& x);
   const Mat3& rotation(int e) const { return rot_[e]; }
+  // Rotation of element e for positions x, without changing the model (warm-started from
+  // the stored one): for outputs computed after a step (stresses, error estimates).
+  Mat3 computeRotation(int e, const VecX& x) const;
   // Sets all rotations to the identity (the linear, small-displacement model).
   void resetRotations();
   // Elements whose deformation gradient at the centroid has det F <= 0 at the last update.

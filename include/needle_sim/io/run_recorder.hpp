@@ -11,6 +11,9 @@
 #include <string>
 #include <vector>
 
+#include <memory>
+
+#include "needle_sim/adapt/spr_estimator.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 namespace needle_sim {
@@ -20,11 +23,17 @@ struct Percentiles {
 };
 Percentiles percentiles(std::vector<double> v);
 
+struct RecorderOptions {
+  bool centerline = false;      // DIR/centerline.csv: every needle node at every step
+  bool error_estimate = false;  // SPR estimate every step: eta_global, eta_max columns
+  bool vtu = false;             // DIR/tissue.vtu at the end (stress, eta, level)
+};
+
 class RunRecorder {
  public:
   // Creates DIR if needed and removes results of an earlier run there.
-  // centerline: also write DIR/centerline.csv, every needle node at every step.
-  RunRecorder(const Simulation& sim, const std::string& dir, bool centerline = false);
+  using Options = RecorderOptions;
+  RunRecorder(const Simulation& sim, const std::string& dir, const Options& options = {});
   void recordStep(const StepStats& s, double step_ms);
   // Finalises: success writes summary.json and renames the CSV.
   void finish(double wall_s);
@@ -38,6 +47,9 @@ class RunRecorder {
   void writeSummary(const std::string& status, double wall_s, long fail_step, const std::string& message);
 
   const Simulation& sim_;
+  Options options_;
+  std::unique_ptr<SprEstimator> spr_;
+  double eta_last_ = 0, eta_max_last_ = 0, eta_rel_max_ = 0;
   std::string dir_;
   std::ofstream csv_, centerline_;
   std::vector<double> step_ms_, forces_ms_, assemble_ms_, factor_ms_, solve_ms_;

@@ -80,6 +80,8 @@ class TissueBody {
 
   // Sets positions/velocities (tests, restarts); prescribed DOFs are kept.
   void setState(const VecX& x, const VecX& v);
+  // Adds nodal forces (3n) to the constant external loads (e.g. a manufactured body force).
+  void addExternalForce(const VecX& f) { f_ext_ += f; }
   // Moves the prescribed DOFs to the values in x (other entries ignored).
   void setPrescribedPositions(const VecX& x);
 

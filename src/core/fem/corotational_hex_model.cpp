@@ -99,6 +99,16 @@ void CorotationalHexModel::updateRotations(const VecX& x) {
   inverted_ = inverted;
 }
 
+Mat3 CorotationalHexModel::computeRotation(int e, const VecX& x) const {
+  const auto& el = mesh_.element(e);
+  const auto& G = refs_[ref_of_[e]].grad_centroid;
+  Mat3 F = Mat3::Zero();
+  for (int a = 0; a < 8; ++a) F.noalias() += node3(x, el[a]) * G.row(a);
+  Eigen::Quaterniond q = quat_[e];
+  extractRotation(F, q);
+  return q.toRotationMatrix();
+}
+
 Eigen::Matrix<double, 24, 1> CorotationalHexModel::localDisplacement(int e, const VecX& x) const {
   // Relative to the element centroid: identical in exact arithmetic (K0 ignores
   // translations) but free of the cancellation of R^T x - X when |x| >> |u|.

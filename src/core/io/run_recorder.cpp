@@ -8,6 +8,8 @@
 #include <numeric>
 #include <stdexcept>
 
+#include "needle_sim/io/vtu_writer.hpp"
+
 namespace needle_sim {
 
 namespace fs = std::filesystem;
@@ -28,12 +30,16 @@ Percentiles percentiles(std::vector<double> v) {
   return p;
 }
 
-RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, bool centerline) : sim_(sim), dir_(dir) {
+RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, const Options& options)
+    : sim_(sim), options_(options) {
+  dir_ = dir;
+  const bool centerline = options.centerline;
+  if ((options.error_estimate || options.vtu) && sim.hasTissue()) spr_ = std::make_unique<SprEstimator>(sim.tissue().model());
   std::error_code ec;
   fs::create_directories(dir_, ec);
   if (ec) throw std::runtime_error("cannot create output directory '" + dir_ + "': " + ec.message());
   for (const char* f : {"summary.json", "timeseries.csv", "timeseries.partial.csv", "centerline.csv",
-                        "centerline.partial.csv"})
+                        "centerline.partial.csv", "tissue.vtu"})
     fs::remove(fs::path(dir_) / f, ec);
   if (centerline && sim.numNeedles() > 0) {
     centerline_.open(fs::path(dir_) / "centerline.partial.csv");
@@ -55,6 +61,7 @@ RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, bool cen
     if (sim.interaction()) csv_ << ',' << n << "_state," << n << "_constraints";
   }
   if (sim.interaction()) csv_ << ",constraint_points,constraint_iterations,constraint_residual,constraint_ms";
+  if (spr_ && options_.error_estimate) csv_ << ",eta_global,eta_max,eta_relative";
   csv_ << '\n' << std::setprecision(10);
 }
 
@@ -92,6 +99,14 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
   if (sim_.interaction())
     csv_ << ',' << s.constraint_points << ',' << s.constraint_iterations << ',' << s.constraint_residual << ','
          << s.constraint_ms;
+  if (spr_ && options_.error_estimate) {
+    const ErrorEstimate est = spr_->estimate(sim_.tissue().positions());
+    eta_last_ = est.global;
+    eta_max_last_ = est.max;
+    const double rel = est.energy > 0 ? est.global / est.energy : 0;
+    eta_rel_max_ = std::max(eta_rel_max_, rel);
+    csv_ << ',' << est.global << ',' << est.max << ',' << rel;
+  }
   csv_ << '\n';
   constraint_iterations_ += s.constraint_iterations;
   max_constraint_points_ = std::max(max_constraint_points_, s.constraint_points);
@@ -160,6 +175,8 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                  {"linear_residual_max", max_linear_residual_},
                  {"factorizations", factorizations_},
                  {"newton_iterations_total", newton_iterations_}};
+  if (spr_ && options_.error_estimate)
+    j["error_estimate"] = {{"eta_global", eta_last_}, {"eta_max", eta_max_last_}, {"eta_relative_max", eta_rel_max_}};
   if (sim_.interaction())
     j["interaction"] = {{"constraint_iterations_total", constraint_iterations_},
                         {"constraint_points_max", max_constraint_points_},
@@ -184,6 +201,14 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
 
 void RunRecorder::finish(double wall_s) {
   csv_.close();
+  if (options_.vtu && spr_) {
+    const auto& body = sim_.tissue();
+    const ErrorEstimate est = spr_->estimate(body.positions());
+    VtuCellData cells;
+    for (const auto& sgm : est.centroid_stress) cells.von_mises.push_back(SprEstimator::vonMises(sgm));
+    cells.eta = est.eta;
+    writeVtu((fs::path(dir_) / "tissue.vtu").string(), body.mesh(), body.positions(), cells);
+  }
   fs::rename(fs::path(dir_) / "timeseries.partial.csv", fs::path(dir_) / "timeseries.csv");
   if (centerline_.is_open()) {
     centerline_.close();

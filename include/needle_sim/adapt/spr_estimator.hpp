@@ -1,0 +1,53 @@
+#pragma once
+// Zienkiewicz-Zhu superconvergent patch recovery (SPR) error estimate (DESIGN.md §2,
+// paper §2.3).
+//
+//  1. Stresses at element centroids (the superconvergent point of a trilinear hex), from
+//     the corotated displacement and rotated to the global frame: sigma_e = R (D B_c u) R^T.
+//  2. Per node, a least-squares linear polynomial in (x, y, z) through the centroid stresses
+//     of its element patch (rest coordinates). Boundary nodes, whose patches are too small
+//     or flat for a 3D linear fit, take the average of the polynomials of the interior
+//     patches they belong to; a node in no interior patch uses the minimum-norm fit of its
+//     own patch (a constant when the patch is a single element).
+//  3. Recovered field sigma* = sum_a N_a sigma*_a; element error in the energy norm
+//     eta_e^2 = int_e (sigma_h - sigma*)^T D^-1 (sigma_h - sigma*) dV (2x2x2 Gauss, sigma_h
+//     at the Gauss points), and the global estimate eta = sqrt(sum eta_e^2).
+// Computed only when asked for: adaptivity, or an error output.
+#include <vector>
+
+#include "needle_sim/core/types.hpp"
+#include "needle_sim/fem/corotational_hex_model.hpp"
+
+namespace needle_sim {
+
+using Stress = Eigen::Matrix<double, 6, 1>;  // Voigt: xx, yy, zz, xy, yz, zx
+
+struct ErrorEstimate {
+  std::vector<double> eta;              // per element
+  std::vector<Stress> centroid_stress;  // per element, global frame
+  std::vector<Stress> recovered;        // per node
+  double global = 0;                    // sqrt(sum eta_e^2)
+  double max = 0;
+  double energy = 0;                    // sqrt(int sigma_h^T D^-1 sigma_h), for relative errors
+};
+
+class SprEstimator {
+ public:
+  explicit SprEstimator(const CorotationalHexModel& model);
+  // Estimate for positions x (3n) with the model's current rotations.
+  ErrorEstimate estimate(const VecX& x) const;
+
+  // Stress of element e at natural coordinates xi, global frame, for positions x (the
+  // element's rotation is extracted from x).
+  Stress elementStress(const VecX& x, int e, const Vec3& xi) const;
+  Stress elementStress(const VecX& x, int e, const Vec3& xi, const Mat3& R) const;
+  static double vonMises(const Stress& s);
+
+ private:
+  const CorotationalHexModel& model_;
+  std::vector<std::vector<int>> node_elements_;
+  std::vector<Vec3> centroids_;
+  std::vector<char> interior_;  // node has a full 3D patch
+};
+
+}  // namespace needle_sim

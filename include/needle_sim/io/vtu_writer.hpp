@@ -1,0 +1,23 @@
+#pragma once
+// The tissue mesh as a VTK unstructured grid (.vtu, ASCII XML), for ParaView: rest and
+// current node positions (the points are the current ones), nodal displacement, and per
+// element the von Mises stress at the centroid, the refinement level and, when given, the
+// SPR error estimate eta.
+#include <string>
+#include <vector>
+
+#include "needle_sim/core/types.hpp"
+#include "needle_sim/fem/hex_mesh.hpp"
+
+namespace needle_sim {
+
+struct VtuCellData {
+  std::vector<double> von_mises;  // per element (empty: omitted)
+  std::vector<double> eta;        // per element (empty: omitted)
+  std::vector<int> level;         // per element (empty: all 0)
+};
+
+// Writes atomically (temporary file, then rename). Throws std::runtime_error on I/O errors.
+void writeVtu(const std::string& path, const HexMesh& mesh, const VecX& positions, const VtuCellData& cells);
+
+}  // namespace needle_sim

@@ -1,0 +1,171 @@
+#include "needle_sim/adapt/spr_estimator.hpp"
+
+#include <Eigen/Dense>
+#include <cmath>
+
+#include "needle_sim/fem/hex8.hpp"
+
+namespace needle_sim {
+
+namespace {
+// Rotates a Voigt stress: R S R^T.
+Stress rotate(const Mat3& R, const Stress& s) {
+  Mat3 S;
+  S << s[0], s[3], s[5], s[3], s[1], s[4], s[5], s[4], s[2];
+  const Mat3 G = R * S * R.transpose();
+  Stress o;
+  o << G(0, 0), G(1, 1), G(2, 2), G(0, 1), G(1, 2), G(0, 2);
+  return o;
+}
+
+// Least-squares linear fit sigma(x) = a + b (x - x0) through samples; returns the
+// coefficients (4 x 6) and whether the fit is a full 3D one.
+bool fitLinear(const std::vector<Vec3>& pts, const std::vector<Stress>& vals, const Vec3& x0,
+               Eigen::Matrix<double, 4, 6>& coef) {
+  const int m = static_cast<int>(pts.size());
+  Eigen::MatrixXd P(m, 4), V(m, 6);
+  double scale = 0;
+  for (int i = 0; i < m; ++i) scale = std::max(scale, (pts[i] - x0).norm());
+  if (scale == 0) scale = 1;
+  for (int i = 0; i < m; ++i) {
+    P(i, 0) = 1;
+    P.block<1, 3>(i, 1) = ((pts[i] - x0) / scale).transpose();
+    V.row(i) = vals[i].transpose();
+  }
+  Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> cod(P);
+  cod.setThreshold(1e-8);
+  coef = cod.solve(V);
+  coef.bottomRows<3>() /= scale;
+  return cod.rank() == 4;
+}
+}  // namespace
+
+SprEstimator::SprEstimator(const CorotationalHexModel& model) : model_(model) {
+  const HexMesh& mesh = model.mesh();
+  node_elements_.resize(mesh.numNodes());
+  centroids_.resize(mesh.numElements());
+  for (int e = 0; e < mesh.numElements(); ++e) {
+    centroids_[e] = mesh.elementCorners(e).colwise().mean().transpose();
+    for (int a : mesh.element(e)) node_elements_[a].push_back(e);
+  }
+  interior_.assign(mesh.numNodes(), 0);
+  for (int n = 0; n < mesh.numNodes(); ++n) {
+    if (node_elements_[n].size() < 4) continue;
+    std::vector<Vec3> pts;
+    for (int e : node_elements_[n]) pts.push_back(centroids_[e]);
+    Eigen::Matrix<double, 4, 6> c;
+    interior_[n] = fitLinear(pts, std::vector<Stress>(pts.size(), Stress::Zero()), mesh.node(n), c);
+  }
+}
+
+Stress SprEstimator::elementStress(const VecX& x, int e, const Vec3& xi) const {
+  return elementStress(x, e, xi, model_.computeRotation(e, x));
+}
+
+Stress SprEstimator::elementStress(const VecX& x, int e, const Vec3& xi, const Mat3& R) const {
+  const HexMesh& mesh = model_.mesh();
+  const auto& el = mesh.element(e);
+  // Corotated displacement relative to the centroid (as the model's forces).
+  Vec3 xc = Vec3::Zero(), Xc = Vec3::Zero();
+  for (int a = 0; a < 8; ++a) {
+    xc += node3(x, el[a]);
+    Xc += mesh.node(el[a]);
+  }
+  xc /= 8;
+  Xc /= 8;
+  Eigen::Matrix<double, 24, 1> u;
+  for (int a = 0; a < 8; ++a) u.segment<3>(3 * a) = R.transpose() * (node3(x, el[a]) - xc) - (mesh.node(el[a]) - Xc);
+  const auto X = mesh.elementCorners(e);
+  const auto Gn = hex8::shapeGradNatural(xi);
+  const Mat3 J = X.transpose() * Gn;
+  const auto B = hex8::strainDisplacement(Gn * J.inverse());
+  const Stress local = model_.material().elasticity() * (B * u);
+  return rotate(R, local);
+}
+
+double SprEstimator::vonMises(const Stress& s) {
+  return std::sqrt(0.5 * (std::pow(s[0] - s[1], 2) + std::pow(s[1] - s[2], 2) + std::pow(s[2] - s[0], 2)) +
+                   3 * (s[3] * s[3] + s[4] * s[4] + s[5] * s[5]));
+}
+
+ErrorEstimate SprEstimator::estimate(const VecX& x) const {
+  const HexMesh& mesh = model_.mesh();
+  const int ne = mesh.numElements(), nn = mesh.numNodes();
+  ErrorEstimate est;
+  est.centroid_stress.resize(ne);
+  std::vector<Mat3> R(ne);
+  for (int e = 0; e < ne; ++e) {
+    R[e] = model_.computeRotation(e, x);
+    est.centroid_stress[e] = elementStress(x, e, Vec3::Zero(), R[e]);
+  }
+
+  // Recovery: interior patches first, their polynomials also serve the patch's other nodes.
+  est.recovered.assign(nn, Stress::Zero());
+  std::vector<int> count(nn, 0);
+  std::vector<Stress> borrowed(nn, Stress::Zero());
+  std::vector<int> borrowed_count(nn, 0);
+  for (int n = 0; n < nn; ++n) {
+    if (!interior_[n]) continue;
+    std::vector<Vec3> pts;
+    std::vector<Stress> vals;
+    for (int e : node_elements_[n]) {
+      pts.push_back(centroids_[e]);
+      vals.push_back(est.centroid_stress[e]);
+    }
+    Eigen::Matrix<double, 4, 6> c;
+    fitLinear(pts, vals, mesh.node(n), c);
+    est.recovered[n] = c.row(0).transpose();
+    count[n] = 1;
+    for (int e : node_elements_[n])
+      for (int a : mesh.element(e))
+        if (!interior_[a]) {
+          borrowed[a] += (c.row(0) + (mesh.node(a) - mesh.node(n)).transpose() * c.bottomRows<3>()).transpose();
+          ++borrowed_count[a];
+        }
+  }
+  for (int n = 0; n < nn; ++n) {
+    if (count[n]) continue;
+    if (borrowed_count[n]) {
+      est.recovered[n] = borrowed[n] / borrowed_count[n];
+    } else {  // no interior patch nearby (very coarse mesh): minimum-norm fit of its own patch
+      std::vector<Vec3> pts;
+      std::vector<Stress> vals;
+      for (int e : node_elements_[n]) {
+        pts.push_back(centroids_[e]);
+        vals.push_back(est.centroid_stress[e]);
+      }
+      Eigen::Matrix<double, 4, 6> c;
+      fitLinear(pts, vals, mesh.node(n), c);
+      est.recovered[n] = c.row(0).transpose();
+    }
+  }
+
+  // Element errors in the energy norm (compliance D^-1), 2x2x2 Gauss.
+  const Eigen::Matrix<double, 6, 6> Dinv = model_.material().elasticity().inverse();
+  const double g = 1.0 / std::sqrt(3.0);
+  est.eta.assign(ne, 0.0);
+  double sum = 0, energy = 0;
+  for (int e = 0; e < ne; ++e) {
+    const auto X = mesh.elementCorners(e);
+    double eta2 = 0;
+    for (int q = 0; q < 8; ++q) {
+      const Vec3 xi(hex8::kCornerSigns[q][0] * g, hex8::kCornerSigns[q][1] * g, hex8::kCornerSigns[q][2] * g);
+      const double detJ = (X.transpose() * hex8::shapeGradNatural(xi)).determinant();
+      const auto N = hex8::shape(xi);
+      Stress star = Stress::Zero();
+      for (int a = 0; a < 8; ++a) star += N[a] * est.recovered[mesh.element(e)[a]];
+      const Stress sh = elementStress(x, e, xi, R[e]);
+      const Stress d = sh - star;
+      eta2 += d.dot(Dinv * d) * detJ;
+      energy += sh.dot(Dinv * sh) * detJ;
+    }
+    est.eta[e] = std::sqrt(std::max(eta2, 0.0));
+    est.max = std::max(est.max, est.eta[e]);
+    sum += eta2;
+  }
+  est.global = std::sqrt(sum);
+  est.energy = std::sqrt(energy);
+  return est;
+}
+
+}  // namespace needle_sim

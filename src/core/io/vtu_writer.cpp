@@ -1,0 +1,52 @@
+#include "needle_sim/io/vtu_writer.hpp"
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iomanip>
+#include <stdexcept>
+
+namespace needle_sim {
+
+void writeVtu(const std::string& path, const HexMesh& mesh, const VecX& x, const VtuCellData& cells) {
+  const std::string tmp = path + ".tmp";
+  {
+    std::ofstream o(tmp);
+    if (!o) throw std::runtime_error("cannot write " + tmp);
+    o << std::setprecision(10);
+    const int nn = mesh.numNodes(), ne = mesh.numElements();
+    o << "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
+      << "<UnstructuredGrid>\n<Piece NumberOfPoints=\"" << nn << "\" NumberOfCells=\"" << ne << "\">\n";
+    o << "<PointData Vectors=\"displacement\">\n<DataArray type=\"Float64\" Name=\"displacement\" NumberOfComponents=\"3\" format=\"ascii\">\n";
+    for (int i = 0; i < nn; ++i) {
+      const Vec3 u = node3(x, i) - mesh.node(i);
+      o << u[0] << ' ' << u[1] << ' ' << u[2] << '\n';
+    }
+    o << "</DataArray>\n</PointData>\n<CellData Scalars=\"von_mises\">\n";
+    auto scalars = [&](const char* name, const auto& v) {
+      o << "<DataArray type=\"Float64\" Name=\"" << name << "\" format=\"ascii\">\n";
+      for (const auto& s : v) o << s << '\n';
+      o << "</DataArray>\n";
+    };
+    if (!cells.von_mises.empty()) scalars("von_mises", cells.von_mises);
+    if (!cells.eta.empty()) scalars("eta", cells.eta);
+    o << "<DataArray type=\"Int32\" Name=\"level\" format=\"ascii\">\n";
+    for (int e = 0; e < ne; ++e) o << (cells.level.empty() ? 0 : cells.level[e]) << '\n';
+    o << "</DataArray>\n</CellData>\n<Points>\n<DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n";
+    for (int i = 0; i < nn; ++i) o << x[3 * i] << ' ' << x[3 * i + 1] << ' ' << x[3 * i + 2] << '\n';
+    o << "</DataArray>\n</Points>\n<Cells>\n<DataArray type=\"Int32\" Name=\"connectivity\" format=\"ascii\">\n";
+    for (int e = 0; e < ne; ++e) {
+      for (int a : mesh.element(e)) o << a << ' ';
+      o << '\n';
+    }
+    o << "</DataArray>\n<DataArray type=\"Int32\" Name=\"offsets\" format=\"ascii\">\n";
+    for (int e = 1; e <= ne; ++e) o << 8 * e << '\n';
+    o << "</DataArray>\n<DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n";
+    for (int e = 0; e < ne; ++e) o << "12\n";  // VTK_HEXAHEDRON
+    o << "</DataArray>\n</Cells>\n</Piece>\n</UnstructuredGrid>\n</VTKFile>\n";
+    if (!o) throw std::runtime_error("error writing " + tmp);
+  }
+  std::filesystem::rename(tmp, path);
+}
+
+}  // namespace needle_sim
