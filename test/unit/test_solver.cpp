@@ -49,7 +49,7 @@ struct SolverSetup {
 
 TEST(SymmetricAssembler, UpperTriangleMatchesDenseAssembly) {
   SolverSetup s;
-  SymmetricAssembler as(s.dofs.numFree(), 24, hexElementDofs(s.mesh, s.dofs));
+  SymmetricAssembler as(s.dofs.numFree(), hexElementDofs(s.mesh, s.dofs));
   hex8::Mat24 Ke;
   for (int e = 0; e < s.mesh.numElements(); ++e) {
     s.model.elementStiffness(e, Ke);
@@ -66,7 +66,7 @@ class CholmodOrdering : public ::testing::TestWithParam<Ordering> {};
 
 TEST_P(CholmodOrdering, SolvesAgainstDenseReferenceAndReusesAnalysis) {
   SolverSetup s;
-  SymmetricAssembler as(s.dofs.numFree(), 24, hexElementDofs(s.mesh, s.dofs));
+  SymmetricAssembler as(s.dofs.numFree(), hexElementDofs(s.mesh, s.dofs));
   CholmodSolver chol(GetParam());
   hex8::Mat24 Ke;
   for (double ck : {1.0, 2.0, 0.5}) {
@@ -94,7 +94,7 @@ TEST(Cholmod, ReportsMatrixThatIsNotPositiveDefinite) {
   HexMesh mesh = HexMesh::box(Vec3(0, 0, 0), Vec3(1, 1, 1), Vec3i(2, 2, 2));
   CorotationalHexModel model(mesh, {1, 0.3, 1});
   DofMap dofs(std::vector<char>(mesh.numDofs(), 0));  // nothing held: K is singular
-  SymmetricAssembler as(dofs.numFree(), 24, hexElementDofs(mesh, dofs));
+  SymmetricAssembler as(dofs.numFree(), hexElementDofs(mesh, dofs));
   hex8::Mat24 Ke;
   for (int e = 0; e < mesh.numElements(); ++e) {
     model.elementStiffness(e, Ke);

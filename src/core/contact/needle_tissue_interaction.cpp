@@ -300,11 +300,12 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
     for (int a = 0; a < 8; ++a)
       for (int d = 0; d < 3; ++d) {
         if (std::abs(c.tissue.weights[a]) < 1e-12) continue;  // e.g. a point on an element edge
-        const int f = tdofs.freeIndex(3 * mesh.element(c.tissue.element)[a] + d);
-        if (f >= 0 && column_of_[f] < 0) {
-          column_of_[f] = static_cast<int>(tcols.size());
-          tcols.push_back(f);
-        }
+        const int full = 3 * mesh.element(c.tissue.element)[a] + d;
+        for (const DofWeight* x = tdofs.expansionBegin(full); x != tdofs.expansionEnd(full); ++x)
+          if (column_of_[x->free] < 0) {
+            column_of_[x->free] = static_cast<int>(tcols.size());
+            tcols.push_back(x->free);
+          }
       }
     Vec3 pN, axis;
     needlePoint(c.needle, c.s, geom[p].e, geom[p].xi, pN, axis);
@@ -329,8 +330,9 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
       for (int a = 0; a < 8; ++a)
         for (int j = 0; j < 3; ++j) {
           if (std::abs(c.tissue.weights[a]) < 1e-12) continue;
-          const int f = tdofs.freeIndex(3 * mesh.element(c.tissue.element)[a] + j);
-          if (f >= 0) HT(3 * p + k, column_of_[f]) -= c.tissue.weights[a] * d[j];
+          const int full = 3 * mesh.element(c.tissue.element)[a] + j;
+          for (const DofWeight* x = tdofs.expansionBegin(full); x != tdofs.expansionEnd(full); ++x)
+            HT(3 * p + k, column_of_[x->free]) -= c.tissue.weights[a] * x->weight * d[j];
         }
       const DofMap& nd = needles_[c.needle]->dofs();
       // Hermite weights: d . v = h00 d.v_a + h10 l (t_a x d).w_a + h01 d.v_b + h11 l (t_b x d).w_b

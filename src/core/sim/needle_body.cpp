@@ -22,10 +22,11 @@ std::vector<char> basePrescribed(int dofs) {
   return p;
 }
 
-std::vector<int> beamElementDofs(int elements, const DofMap& dofs) {
-  std::vector<int> out(static_cast<size_t>(elements) * 12);
+ElementDofs beamElementDofs(int elements, const DofMap& dofs) {
+  ElementDofs out;
+  out.k = 12;
   for (int e = 0; e < elements; ++e)
-    for (int i = 0; i < 12; ++i) out[12 * e + i] = dofs.freeIndex(6 * e + i);
+    for (int i = 0; i < 12; ++i) out.add(dofs, 6 * e + i);
   return out;
 }
 
@@ -46,7 +47,7 @@ NeedleBody::NeedleBody(const NeedleScene& n, const SolverScene& solver)
       trajectory_(BasePose{n.base_position, n.base_direction, n.base_roll}),
       settings_(solver),
       dofs_(basePrescribed(6 * (n.elements + 1))),
-      assembler_(dofs_.numFree(), 12, beamElementDofs(n.elements, dofs_)),
+      assembler_(dofs_.numFree(), beamElementDofs(n.elements, dofs_)),
       chol_(Ordering::Amd) {
   for (const auto& k : n.motion) trajectory_.add(k.t, BasePose{k.position, k.direction, k.roll});
   state_ = beam_.restState();

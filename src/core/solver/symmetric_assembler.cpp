@@ -5,17 +5,20 @@
 
 namespace needle_sim {
 
-SymmetricAssembler::SymmetricAssembler(int n, int k, const std::vector<int>& element_dofs) : k_(k) {
-  assert(k > 0 && element_dofs.size() % k == 0);
-  const size_t ne = element_dofs.size() / k;
+SymmetricAssembler::SymmetricAssembler(int n, const ElementDofs& el) : k_(el.k) {
+  const int k = el.k, ne = el.numElements();
   // Column-wise row lists of the upper triangle.
   std::vector<std::vector<int>> rows(n);
-  for (size_t e = 0; e < ne; ++e) {
-    const int* r = element_dofs.data() + e * k;
-    for (int i = 0; i < k; ++i)
-      for (int j = 0; j < k; ++j)
-        if (r[i] >= 0 && r[j] >= 0 && r[i] <= r[j]) rows[r[j]].push_back(r[i]);
-  }
+  auto forPairs = [&](int e, auto&& fn) {
+    for (int j = 0; j < k; ++j)
+      for (int i = 0; i < k; ++i)
+        for (int a = el.offset[e * k + i]; a < el.offset[e * k + i + 1]; ++a)
+          for (int b = el.offset[e * k + j]; b < el.offset[e * k + j + 1]; ++b) {
+            const DofWeight &ri = el.entries[a], &rj = el.entries[b];
+            if (ri.free <= rj.free) fn(ri.free, rj.free, j * k + i, ri.weight * rj.weight);
+          }
+  };
+  for (int e = 0; e < ne; ++e) forPairs(e, [&](int r, int c, int, double) { rows[c].push_back(r); });
   for (int c = 0; c < n; ++c) rows[c].push_back(c);  // diagonal always present (mass)
   std::vector<int> outer(n + 1, 0);
   for (int c = 0; c < n; ++c) {
@@ -37,24 +40,21 @@ SymmetricAssembler::SymmetricAssembler(int n, int k, const std::vector<int>& ele
     assert(it != e && *it == row);
     return static_cast<int>(it - A_.innerIndexPtr());
   };
-  pos_.assign(ne * k * k, -1);
-  for (size_t e = 0; e < ne; ++e) {
-    const int* r = element_dofs.data() + e * k;
-    int* p = pos_.data() + e * k * k;
-    for (int j = 0; j < k; ++j)
-      for (int i = 0; i < k; ++i)
-        if (r[i] >= 0 && r[j] >= 0 && r[i] <= r[j]) p[j * k + i] = find(r[i], r[j]);
+  element_offset_.assign(ne + 1, 0);
+  for (int e = 0; e < ne; ++e) {
+    forPairs(e, [&](int r, int c, int q, double w) { targets_.push_back({find(r, c), q, w}); });
+    element_offset_[e + 1] = static_cast<int>(targets_.size());
   }
   diag_.resize(n);
   for (int c = 0; c < n; ++c) diag_[c] = find(c, c);
 }
 
 void SymmetricAssembler::addElement(int e, const double* Ke, double scale) {
-  const int kk = k_ * k_;
-  const int* p = pos_.data() + static_cast<size_t>(e) * kk;
   double* v = A_.valuePtr();
-  for (int q = 0; q < kk; ++q)
-    if (p[q] >= 0) v[p[q]] += scale * Ke[q];
+  for (int t = element_offset_[e]; t < element_offset_[e + 1]; ++t) {
+    const Target& tg = targets_[t];
+    v[tg.pos] += scale * tg.w * Ke[tg.q];
+  }
 }
 
 void SymmetricAssembler::addDiagonal(const VecX& d, double scale) {
@@ -63,13 +63,15 @@ void SymmetricAssembler::addDiagonal(const VecX& d, double scale) {
   for (size_t c = 0; c < diag_.size(); ++c) v[diag_[c]] += scale * d[c];
 }
 
-std::vector<int> hexElementDofs(const HexMesh& mesh, const DofMap& dofs) {
-  std::vector<int> out(static_cast<size_t>(mesh.numElements()) * 24);
+ElementDofs hexElementDofs(const HexMesh& mesh, const DofMap& dofs) {
+  ElementDofs out;
+  out.k = 24;
   for (int e = 0; e < mesh.numElements(); ++e) {
     const auto& el = mesh.element(e);
     for (int a = 0; a < 8; ++a)
-      for (int d = 0; d < 3; ++d) out[24 * e + 3 * a + d] = dofs.freeIndex(3 * el[a] + d);
+      for (int d = 0; d < 3; ++d) out.add(dofs, 3 * el[a] + d);
   }
+  if (out.offset.empty()) out.offset.push_back(0);
   return out;
 }
 

@@ -15,7 +15,7 @@ double msSince(std::chrono::steady_clock::time_point t0) {
 
 SystemSolver::SystemSolver(const CorotationalHexModel& model, const DofMap& dofs,
                            const LinearSolverSettings& s)
-    : model_(model), dofs_(dofs), settings_(s), assembler_(dofs.numFree(), 24, hexElementDofs(model.mesh(), dofs)), chol_(s.ordering) {}
+    : model_(model), dofs_(dofs), settings_(s), assembler_(dofs.numFree(), hexElementDofs(model.mesh(), dofs)), chol_(s.ordering) {}
 
 void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const {
   dofs_.scatter(v, full_in_);
