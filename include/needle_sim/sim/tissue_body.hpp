@@ -41,7 +41,10 @@ class TissueBody {
  public:
   // Throws InputError (naming the scene key) when a Dirichlet or traction region selects
   // nothing, and std::invalid_argument for a degenerate mesh.
-  TissueBody(HexMesh mesh, const TissueScene& tissue, const SolverScene& solver, const std::string& file = "");
+  // node_hanging (adaptive meshes): per node, its masters (node, weight); empty for a node
+  // that is not hanging.
+  TissueBody(HexMesh mesh, const TissueScene& tissue, const SolverScene& solver, const std::string& file = "",
+             const std::vector<std::vector<std::pair<int, double>>>& node_hanging = {});
 
   const HexMesh& mesh() const { return *mesh_; }
   const CorotationalHexModel& model() const { return *model_; }

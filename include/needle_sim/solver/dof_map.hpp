@@ -45,6 +45,9 @@ class DofMap {
   void gather(const VecX& full, VecX& free) const;
   // full = P free (increments); prescribed entries are zero.
   void scatter(const VecX& free, VecX& full) const;
+  // Sets every hanging entry of a full vector (positions) to the weighted values of its
+  // masters, prescribed masters included.
+  void interpolateHanging(VecX& full) const;
 
  private:
   void build(const std::vector<char>& prescribed, const std::vector<std::vector<std::pair<int, double>>>* hanging);
@@ -54,6 +57,8 @@ class DofMap {
   std::vector<char> prescribed_;
   std::vector<int> offset_;
   std::vector<DofWeight> entries_;
+  std::vector<int> hanging_order_;  // hanging DOFs, masters before the DOFs they carry
+  std::vector<std::vector<std::pair<int, double>>> hanging_;
 };
 
 }  // namespace needle_sim

@@ -39,7 +39,8 @@ void addFaceTraction(const HexMesh& mesh, const BoundaryFace& f, const Vec3& t, 
 }
 }  // namespace
 
-TissueBody::TissueBody(HexMesh mesh, const TissueScene& tissue, const SolverScene& solver, const std::string& file)
+TissueBody::TissueBody(HexMesh mesh, const TissueScene& tissue, const SolverScene& solver, const std::string& file,
+                       const std::vector<std::vector<std::pair<int, double>>>& node_hanging)
     : mesh_(std::make_unique<HexMesh>(std::move(mesh))), settings_(solver) {
   model_ = std::make_unique<CorotationalHexModel>(*mesh_, tissue.material);
   const int n = mesh_->numNodes();
@@ -63,7 +64,16 @@ TissueBody::TissueBody(HexMesh mesh, const TissueScene& tissue, const SolverScen
       }
     if (count == 0) throw InputError(file, dc.key + ".region", "selects no grid node of the tissue");
   }
-  dofs_ = DofMap(prescribed);
+  if (node_hanging.empty()) {
+    dofs_ = DofMap(prescribed);
+  } else {
+    std::vector<std::vector<std::pair<int, double>>> hanging(3 * n);
+    for (int i = 0; i < n && i < static_cast<int>(node_hanging.size()); ++i)
+      for (const auto& [m, w] : node_hanging[i])
+        for (int d = 0; d < 3; ++d) hanging[3 * i + d].emplace_back(3 * m + d, w);
+    dofs_ = DofMap(prescribed, hanging);
+    dofs_.interpolateHanging(x_);  // follow prescribed masters
+  }
 
   // Loads: gravity and body force through the lumped (row-sum) mass, tractions on faces.
   const VecX& vol = model_->nodalVolume();
@@ -231,6 +241,8 @@ void TissueBody::setState(const VecX& x, const VecX& v) {
       x_[i] = x[i];
       v_[i] = v[i];
     }
+  dofs_.interpolateHanging(x_);
+  dofs_.interpolateHanging(v_);
 }
 
 }  // namespace needle_sim
@@ -239,5 +251,6 @@ namespace needle_sim {
 void TissueBody::setPrescribedPositions(const VecX& x) {
   for (int i = 0; i < dofs_.numFull(); ++i)
     if (dofs_.prescribed(i)) x_[i] = x[i];
+  dofs_.interpolateHanging(x_);
 }
 }  // namespace needle_sim

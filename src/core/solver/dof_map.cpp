@@ -38,11 +38,15 @@ void DofMap::build(const std::vector<char>& prescribed,
         expand(m);
         for (const auto& [f, wf] : rows[m]) rows[i][f] += w * wf;
       }
+      hanging_order_.push_back(i);
     }
     state[i] = 2;
   };
   offset_.assign(n + 1, 0);
   entries_.clear();
+  hanging_order_.clear();
+  hanging_.clear();
+  if (hanging) hanging_ = *hanging;
   for (int i = 0; i < n; ++i) {
     expand(i);
     for (const auto& [f, w] : rows[i]) entries_.push_back({f, w});
@@ -65,4 +69,14 @@ void DofMap::scatter(const VecX& free, VecX& full) const {
   }
 }
 
+}  // namespace needle_sim
+
+namespace needle_sim {
+void DofMap::interpolateHanging(VecX& full) const {
+  for (int i : hanging_order_) {
+    double v = 0;
+    for (const auto& [m, w] : hanging_[i]) v += w * full[m];
+    full[i] = v;
+  }
+}
 }  // namespace needle_sim
