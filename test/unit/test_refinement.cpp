@@ -181,3 +181,20 @@ TEST(Refinement, CoarseningRespectsTheBalance) {
   rm.refine({child});    // level 2 inside the centre cell: neighbours must stay refined
   EXPECT_EQ(rm.coarsen({13}), 0);  // its children are not all leaves
 }
+
+#include "needle_sim/adapt/marking.hpp"
+
+TEST(Marking, MaxRuleAndBulkRule) {
+  const std::vector<double> eta = {1.0, 0.2, 0.6, 0.05, 0.9, 0.3};
+  std::vector<char> ok(eta.size(), 1);
+  // Max rule: eta >= 0.5 * 1.0
+  EXPECT_EQ(MaxMarking(0.5).mark(eta, ok), (std::vector<int>{0, 2, 4}));
+  // Excluded elements (at max level) neither count for the maximum nor get marked.
+  ok[0] = 0;
+  EXPECT_EQ(MaxMarking(0.5).mark(eta, ok), (std::vector<int>{2, 4}));  // max 0.9: >= 0.45
+  ok[0] = 1;
+  // Bulk: total 2.3025; 60 % = 1.3815; 1.0 + 0.81 = 1.81 >= 1.3815 after two elements.
+  EXPECT_EQ(BulkMarking(0.6).mark(eta, ok), (std::vector<int>{0, 4}));
+  EXPECT_EQ(BulkMarking(0.9).mark(eta, ok), (std::vector<int>{0, 4, 2}));
+  EXPECT_TRUE(MaxMarking(0.5).mark(std::vector<double>(3, 0.0), std::vector<char>(3, 1)).empty());
+}
