@@ -50,6 +50,12 @@ class RefinableHexMesh {
   int parent(int c) const { return cells_[c].parent; }
   int numLeaves() const;
   const Vec3& node(int id) const { return nodes_[id]; }
+  int numNodes() const { return static_cast<int>(nodes_.size()); }
+  // A refinement node is the average of these nodes (an edge's 2 ends, a face's 4 corners, a
+  // cell's 8 corners), which is also the parent's trilinear field there: any nodal field is
+  // carried to new nodes by averaging, and their ids are larger than their sources'.
+  const std::vector<int>& sources(int id) const { return sources_[id]; }
+  bool nodeActive(int id) const { return activeNode(id); }
 
  private:
   struct Cell {
@@ -70,6 +76,7 @@ class RefinableHexMesh {
 
   std::vector<Vec3> nodes_;
   std::vector<int> use_;  // active leaves using each node
+  std::vector<std::vector<int>> sources_;
   std::vector<Cell> cells_;
   std::map<std::pair<int, int>, int> edge_mid_;
   std::map<std::array<int, 4>, int> face_mid_;

@@ -16,7 +16,8 @@ const int kEdges[12][2] = {{0, 1}, {1, 2}, {2, 3}, {3, 0}, {4, 5}, {5, 6},
 int cornerIndex(int a, int axis) { return hex8::kCornerSigns[a][axis] < 0 ? 0 : 2; }
 }  // namespace
 
-RefinableHexMesh::RefinableHexMesh(const HexMesh& coarse) : nodes_(coarse.nodes()), use_(coarse.numNodes(), 0) {
+RefinableHexMesh::RefinableHexMesh(const HexMesh& coarse)
+    : nodes_(coarse.nodes()), use_(coarse.numNodes(), 0), sources_(coarse.numNodes()) {
   for (const auto& el : coarse.elements()) {
     Cell c;
     c.nodes = el;
@@ -47,6 +48,7 @@ int RefinableHexMesh::edgeMid(int a, int b, bool create) {
   if (m >= 0 || !create) return m;
   nodes_.push_back(0.5 * (nodes_[a] + nodes_[b]));
   use_.push_back(0);
+  sources_.push_back({a, b});
   const int id = static_cast<int>(nodes_.size()) - 1;
   edge_mid_[{std::min(a, b), std::max(a, b)}] = id;
   return id;
@@ -57,6 +59,7 @@ int RefinableHexMesh::faceMid(const std::array<int, 4>& f, bool create) {
   if (m >= 0 || !create) return m;
   nodes_.push_back(0.25 * (nodes_[f[0]] + nodes_[f[1]] + nodes_[f[2]] + nodes_[f[3]]));
   use_.push_back(0);
+  sources_.push_back({f[0], f[1], f[2], f[3]});
   const int id = static_cast<int>(nodes_.size()) - 1;
   auto key = f;
   std::sort(key.begin(), key.end());
@@ -103,6 +106,7 @@ void RefinableHexMesh::split(int ci) {
     for (int a = 0; a < 8; ++a) p += 0.125 * nodes_[cn[a]];
     nodes_.push_back(p);
     use_.push_back(0);
+    sources_.push_back(std::vector<int>(cn.begin(), cn.end()));
     cells_[ci].centre = static_cast<int>(nodes_.size()) - 1;
   }
   grid[1][1][1] = cells_[ci].centre;
