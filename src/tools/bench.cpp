@@ -142,6 +142,61 @@ int benchInteraction(const BenchOptions& o, const std::vector<std::string>& cell
   return 0;
 }
 
+// Adaptive scenes: every step of the scene (the mesh changes as it runs); the cost of the
+// adaptivity (SPR estimate, marking + refinement/coarsening, rebuilding the tissue body)
+// against the whole run.
+int benchAdaptive(const BenchOptions& o, const Scene& scene) {
+  Simulation sim(scene);
+  const long steps = o.steps > 0 ? o.steps : scene.numSteps();
+  std::vector<double> total, est, mark, rebuild, pass_share;
+  std::vector<double> dofs;
+  double sum_total = 0, sum_adapt = 0;
+  int passes = 0, changes = 0;
+  const auto w0 = std::chrono::steady_clock::now();
+  for (long k = 0; k < steps; ++k) {
+    const auto t0 = std::chrono::steady_clock::now();
+    const StepStats s = sim.step();
+    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    total.push_back(ms);
+    dofs.push_back(sim.numDofs());
+    sum_total += ms;
+    sum_adapt += s.adapt_ms();
+    if (s.adapted) {
+      ++passes;
+      changes += s.mesh_changed;
+      est.push_back(s.estimate_ms);
+      mark.push_back(s.mark_refine_ms);
+      if (s.mesh_changed) rebuild.push_back(s.rebuild_ms);
+    }
+  }
+  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
+  const Percentiles pt = percentiles(total), pd = percentiles(dofs), pe = percentiles(est), pm = percentiles(mark),
+                    pr = percentiles(rebuild);
+  std::printf("needle_sim bench: %s, %ld steps (times in ms)\n", o.scene.c_str(), steps);
+  std::printf("| scene | wall s | DOFs median | DOFs max | step median | step p95 | step max | adapt passes | mesh "
+              "changes | estimate median | mark+refine median | rebuild median | adaptivity share |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+  std::printf("| %s | %.2f | %.0f | %.0f | %.3f | %.3f | %.1f | %d | %d | %.3f | %.3f | %.3f | %.1f %% |\n",
+              scene.name.c_str(), wall, pd.median, pd.max, pt.median, pt.p95, pt.max, passes, changes, pe.median,
+              pm.median, pr.median, 100 * sum_adapt / std::max(sum_total, 1e-300));
+  if (!o.json_out.empty()) {
+    std::ofstream f(o.json_out);
+    f << std::setw(2)
+      << nlohmann::json{{"scene", scene.name},
+                        {"wall_s", wall},
+                        {"dofs", {{"median", pd.median}, {"max", pd.max}}},
+                        {"step_ms", {{"median", pt.median}, {"p95", pt.p95}, {"max", pt.max}}},
+                        {"passes", passes},
+                        {"mesh_changes", changes},
+                        {"estimate_ms_median", pe.median},
+                        {"mark_refine_ms_median", pm.median},
+                        {"rebuild_ms_median", pr.median},
+                        {"adaptivity_share", sum_adapt / std::max(sum_total, 1e-300)}}
+      << '\n';
+  }
+  return 0;
+}
+
 int benchCommand(const BenchOptions& o) {
   static const std::regex cells_re("([0-9]+)x([0-9]+)x([0-9]+)");
   {
@@ -149,6 +204,7 @@ int benchCommand(const BenchOptions& o) {
     sets.push_back("solver.mode=dynamic");
     const Scene scene = loadScene(o.scene, sets);
     if (!scene.has_tissue) return benchNeedles(o, scene);
+    if (scene.adaptivity) return benchAdaptive(o, scene);
     if (scene.interaction) return benchInteraction(o, o.cells);
   }
   nlohmann::json out = nlohmann::json::array();

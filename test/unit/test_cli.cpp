@@ -193,3 +193,32 @@ TEST(Cli, ErrorEstimateAndVtuOnRequest) {
   EXPECT_EQ(header.find("eta_"), std::string::npos);
   EXPECT_FALSE(fs::exists(plain / "tissue.vtu"));
 }
+
+// An adaptive run: DOFs, elements per level, estimate and costs per step; the summary's
+// adaptivity section; the VTU's levels and element count agree with the final mesh.
+TEST(Cli, AdaptiveRunOutputs) {
+  const fs::path out = freshDir("adaptive");
+  const Result r = runTool("run '" + kSrc + "/config/scenes/phantom_insertion_adaptive.yaml' --out '" + out.string() +
+                           "' --quiet --vtu --set time.duration=1.0");
+  ASSERT_EQ(r.status, 0) << r.err;
+  std::ifstream csv(out / "timeseries.csv");
+  std::string header;
+  std::getline(csv, header);
+  for (const char* col : {"eta_global", "tissue_elements", "elements_L0", "elements_L1", "elements_L2", "refined",
+                          "coarsened", "estimate_ms", "mark_refine_ms", "rebuild_ms"})
+    EXPECT_NE(header.find(col), std::string::npos) << col;
+  EXPECT_EQ(header.find("elements_L3"), std::string::npos);
+  const std::string check =
+      "/usr/bin/python3 -c \"import sys, json, csv, xml.etree.ElementTree as E; d = sys.argv[1]; "
+      "s = json.load(open(d + '/summary.json'))['adaptivity']; "
+      "rows = list(csv.DictReader(open(d + '/timeseries.csv'))); last = rows[-1]; "
+      "n = sum(s['elements_per_level']); assert n == int(last['tissue_elements']) and n > 128, n; "
+      "assert s['tissue_dofs_final'] == int(last['dofs']) - 6 * 17, (s, last['dofs']); "
+      "assert s['mesh_changes'] > 0 and s['cells_refined_total'] > 0; "
+      "assert len(set(r['dofs'] for r in rows)) > 1; "
+      "t = E.parse(d + '/tissue.vtu'); p = t.find('.//Piece'); assert int(p.get('NumberOfCells')) == n; "
+      "a = {x.get('Name'): x.text.split() for x in t.iter('DataArray')}; "
+      "lv = [int(v) for v in a['level']]; assert max(lv) == 2 and lv.count(2) == s['elements_per_level'][2]\" '" +
+      out.string() + "'";
+  EXPECT_EQ(std::system(check.c_str()), 0);
+}

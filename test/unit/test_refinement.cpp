@@ -189,9 +189,10 @@ TEST(Marking, MaxRuleAndBulkRule) {
   std::vector<char> ok(eta.size(), 1);
   // Max rule: eta >= 0.5 * 1.0
   EXPECT_EQ(MaxMarking(0.5).mark(eta, ok), (std::vector<int>{0, 2, 4}));
-  // Excluded elements (at max level) neither count for the maximum nor get marked.
+  // Excluded elements (at max level) are not marked but still set the maximum.
   ok[0] = 0;
-  EXPECT_EQ(MaxMarking(0.5).mark(eta, ok), (std::vector<int>{2, 4}));  // max 0.9: >= 0.45
+  EXPECT_EQ(MaxMarking(0.5).mark(eta, ok), (std::vector<int>{2, 4}));
+  EXPECT_EQ(MaxMarking(0.65).mark(eta, ok), (std::vector<int>{4}));  // 0.65 * 1.0, not 0.65 * 0.9
   ok[0] = 1;
   // Bulk: total 2.3025; 60 % = 1.3815; 1.0 + 0.81 = 1.81 >= 1.3815 after two elements.
   EXPECT_EQ(BulkMarking(0.6).mark(eta, ok), (std::vector<int>{0, 4}));

@@ -4,8 +4,9 @@
 //  - MaxMarking (the paper's rule, eq. "max rule"): eta_e >= theta * max eta;
 //  - BulkMarking (Doerfler): the smallest set of largest indicators whose squared sum
 //    reaches theta * sum eta^2.
-// Both skip elements that may not be refined (at max_level), and report nothing when the
-// global estimate is already below the tolerance.
+// Both skip elements that may not be refined (at max_level); the maximum (max rule) and the
+// total (bulk rule) are over all elements, so refinement stops once the largest errors sit
+// in elements at max_level.
 #include <memory>
 #include <string>
 #include <vector>

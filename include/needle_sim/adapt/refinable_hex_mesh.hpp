@@ -51,6 +51,7 @@ class RefinableHexMesh {
   int numLeaves() const;
   const Vec3& node(int id) const { return nodes_[id]; }
   int numNodes() const { return static_cast<int>(nodes_.size()); }
+  int numActiveNodes() const;
   // A refinement node is the average of these nodes (an edge's 2 ends, a face's 4 corners, a
   // cell's 8 corners), which is also the parent's trilinear field there: any nodal field is
   // carried to new nodes by averaging, and their ids are larger than their sources'.

@@ -44,6 +44,12 @@ class SprEstimator {
   static double vonMises(const Stress& s);
 
  private:
+  // Element displacement in its corotated frame, relative to the centroid.
+  Eigen::Matrix<double, 24, 1> corotatedDisplacement(const VecX& x, int e, const Mat3& R) const;
+
+ public:
+
+ private:
   const CorotationalHexModel& model_;
   std::vector<std::vector<int>> node_elements_;
   std::vector<Vec3> centroids_;

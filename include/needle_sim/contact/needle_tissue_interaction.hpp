@@ -50,6 +50,9 @@ class NeedleTissueInteraction {
   InteractionStats solve(double h);
   // After the bodies' commit: puncture, cutting, withdrawal.
   void afterCommit();
+  // The tissue body was rebuilt on a refined or coarsened mesh: every constraint point is
+  // re-embedded by its rest position, the surface and locators are rebuilt.
+  void rebind(TissueBody& tissue);
 
   InsertionState state(int needle) const { return tracks_[needle].state; }
   int activePoints(int needle) const;
@@ -79,12 +82,13 @@ class NeedleTissueInteraction {
   // Appends to `out` (not to constraints_, which the caller may be iterating).
   void layShaftPoints(int n, const EmbeddedPoint& upto, std::vector<std::unique_ptr<ContactConstraint>>& out);
   void updateGeometry();
+  void bindTissue(TissueBody& tissue);
 
   InteractionSettings settings_;
-  TissueBody& tissue_;
+  TissueBody* tissue_ = nullptr;
   std::vector<NeedleBody*> needles_;
-  TissueSurface surface_;
-  PointLocator rest_locator_;
+  std::unique_ptr<TissueSurface> surface_;
+  std::unique_ptr<PointLocator> rest_locator_;
   std::vector<std::vector<int>> node_elements_;  // node -> elements
   std::vector<std::unique_ptr<ContactConstraint>> constraints_;
   std::vector<Track> tracks_;

@@ -6,6 +6,7 @@
 // covers Cook's membrane). Adaptivity will later add refined elements and hanging nodes
 // on top of this representation, so nothing here assumes a grid after construction.
 #include <array>
+#include <set>
 #include <vector>
 
 #include "needle_sim/core/types.hpp"
@@ -42,8 +43,11 @@ class HexMesh {
   VecX restPositions() const;
   // Rest corner coordinates of element e as an 8x3 matrix.
   Eigen::Matrix<double, 8, 3> elementCorners(int e) const;
-  // Element faces not shared with another element.
+  // Element faces not shared with another element and not on a non-conforming interface.
   std::vector<BoundaryFace> boundaryFaces() const;
+  // Faces (node sets) of a refined mesh that are interior although no other element has the
+  // same four nodes: a coarse face next to four finer ones, and those four (hanging nodes).
+  void setInterfaceFaces(std::set<std::array<int, 4>> sorted_keys) { interface_faces_ = std::move(sorted_keys); }
   Vec3 boundsMin() const;
   Vec3 boundsMax() const;
 
@@ -53,6 +57,7 @@ class HexMesh {
  private:
   std::vector<Vec3> nodes_;
   std::vector<HexElement> elements_;
+  std::set<std::array<int, 4>> interface_faces_;
 };
 
 }  // namespace needle_sim

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "needle_sim/adapt/adaptivity_settings.hpp"
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/contact/interaction_settings.hpp"
 #include "needle_sim/fem/material.hpp"
@@ -108,6 +109,7 @@ struct Scene {
   TissueScene tissue;
   std::vector<NeedleScene> needles;
   std::optional<InteractionSettings> interaction;
+  std::optional<AdaptivitySettings> adaptivity;
   std::vector<ProbeScene> probes;
 
   long numSteps() const;

@@ -6,6 +6,8 @@
 #include <string>
 #include <vector>
 
+#include "needle_sim/adapt/mesh_adaptation.hpp"
+#include "needle_sim/adapt/spr_estimator.hpp"
 #include "needle_sim/contact/needle_tissue_interaction.hpp"
 #include "needle_sim/fem/embedded_point.hpp"
 #include "needle_sim/scene/scene.hpp"
@@ -43,18 +45,43 @@ class Simulation {
   double elasticEnergy() const;
   const StepStats& lastStats() const { return last_; }
 
+  // Adaptivity (nullptr without an `adaptivity` section).
+  const MeshAdaptation* adaptation() const { return adaptation_.get(); }
+  // Refinement level per tissue element (all 0 without adaptivity).
+  std::vector<int> elementLevels() const;
+  // SPR estimate of the current state; computed on first use after each step (adaptive
+  // runs compute it anyway and share it).
+  const ErrorEstimate& errorEstimate() const;
+  // The last estimate computed (by the adaptation or errorEstimate()), or nullptr.
+  const ErrorEstimate* lastEstimate() const { return estimate_ever_ ? &estimate_ : nullptr; }
+  // Refines the given tissue elements now (tests, scripted refinement), carrying the state
+  // over; needs an adaptivity section.
+  AdaptationResult refineElements(const std::vector<int>& elements);
+  AdaptationResult coarsenElements(const std::vector<int>& elements);
+
   int numProbes() const { return static_cast<int>(probes_.size()); }
   const std::string& probeName(int i) const { return scene_.probes[i].name; }
   Vec3 probeDisplacement(int i) const;
 
  private:
   void checkState() const;
+  void adaptMesh();
+  // After the adaptation changed the mesh: new tissue body with the state carried over,
+  // probes and constraint points re-embedded.
+  void rebuildTissue();
+  void embedProbes();
 
   Scene scene_;
   std::unique_ptr<TissueBody> tissue_;
   std::vector<std::unique_ptr<NeedleBody>> needles_;
   std::unique_ptr<NeedleTissueInteraction> interaction_;
   std::vector<EmbeddedPoint> probes_;
+  std::unique_ptr<MeshAdaptation> adaptation_;
+  mutable std::unique_ptr<SprEstimator> estimator_;  // bound to the current tissue body
+  mutable ErrorEstimate estimate_;
+  mutable long estimate_step_ = -1;
+  mutable bool estimate_ever_ = false;
+  long contact_signature_ = 0;  // constraint counts and states at the last step
   long step_ = 0;
   StepStats last_;
   double diag_ = 1;

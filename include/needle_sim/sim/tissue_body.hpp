@@ -34,7 +34,14 @@ struct StepStats {
   int constraint_iterations = 0; // projected Gauss-Seidel sweeps
   double constraint_residual = 0;
   double constraint_ms = 0;      // whole constraint phase (detection, compliance, PGS, correction)
-  double total_ms() const { return forces_ms + assemble_ms + factor_ms + solve_ms + constraint_ms; }
+  // Adaptivity (on the steps it runs): SPR estimate, marking + refinement/coarsening,
+  // rebuilding the tissue body (state transfer, re-embedding, new factorisation).
+  bool adapted = false;          // the estimate ran this step
+  bool mesh_changed = false;
+  int refined = 0, coarsened = 0;
+  double estimate_ms = 0, mark_refine_ms = 0, rebuild_ms = 0;
+  double adapt_ms() const { return estimate_ms + mark_refine_ms + rebuild_ms; }
+  double total_ms() const { return forces_ms + assemble_ms + factor_ms + solve_ms + constraint_ms + adapt_ms(); }
 };
 
 class TissueBody {

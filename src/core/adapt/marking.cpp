@@ -6,9 +6,10 @@
 namespace needle_sim {
 
 std::vector<int> MaxMarking::mark(const std::vector<double>& eta, const std::vector<char>& refinable) const {
+  // The maximum is over all elements, those at max_level included: once the largest errors
+  // sit in elements that may not be refined, nothing else is marked and refinement stops.
   double mx = 0;
-  for (size_t e = 0; e < eta.size(); ++e)
-    if (refinable[e]) mx = std::max(mx, eta[e]);
+  for (double v : eta) mx = std::max(mx, v);
   std::vector<int> out;
   if (!(mx > 0)) return out;
   for (size_t e = 0; e < eta.size(); ++e)

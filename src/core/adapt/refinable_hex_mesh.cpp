@@ -32,6 +32,12 @@ int RefinableHexMesh::numLeaves() const {
   return n;
 }
 
+int RefinableHexMesh::numActiveNodes() const {
+  int n = 0;
+  for (int u : use_) n += u > 0;
+  return n;
+}
+
 int RefinableHexMesh::findEdgeMid(int a, int b) const {
   auto it = edge_mid_.find({std::min(a, b), std::max(a, b)});
   return it == edge_mid_.end() ? -1 : it->second;
@@ -230,6 +236,7 @@ RefinableHexMesh::Active RefinableHexMesh::active() const {
     out.cell.push_back(c);
   }
   out.hanging.assign(pts.size(), {});
+  std::set<std::array<int, 4>> interface;
   // Hanging nodes: active nodes in the middle of an active leaf's edge or face.
   for (size_t e = 0; e < els.size(); ++e) {
     const Cell& c = cells_[out.cell[e]];
@@ -241,6 +248,18 @@ RefinableHexMesh::Active RefinableHexMesh::active() const {
     for (const auto& f : hex8::kFaces) {
       const int m = findFaceMid({c.nodes[f[0]], c.nodes[f[1]], c.nodes[f[2]], c.nodes[f[3]]});
       if (m < 0 || index[m] < 0) continue;
+      // A coarse face with finer neighbours: it and its four quarters are interior.
+      std::array<int, 4> key = {index[c.nodes[f[0]]], index[c.nodes[f[1]]], index[c.nodes[f[2]]], index[c.nodes[f[3]]]};
+      std::sort(key.begin(), key.end());
+      interface.insert(key);
+      for (int q = 0; q < 4; ++q) {
+        const int a = c.nodes[f[q]];
+        const int e1 = findEdgeMid(a, c.nodes[f[(q + 1) % 4]]), e0 = findEdgeMid(a, c.nodes[f[(q + 3) % 4]]);
+        if (e1 < 0 || e0 < 0 || index[e1] < 0 || index[e0] < 0) continue;
+        std::array<int, 4> quarter = {index[a], index[e1], index[m], index[e0]};
+        std::sort(quarter.begin(), quarter.end());
+        interface.insert(quarter);
+      }
       out.hanging[index[m]] = {{index[c.nodes[f[0]]], 0.25},
                                {index[c.nodes[f[1]]], 0.25},
                                {index[c.nodes[f[2]]], 0.25},
@@ -248,6 +267,7 @@ RefinableHexMesh::Active RefinableHexMesh::active() const {
     }
   }
   out.mesh = HexMesh(std::move(pts), std::move(els));
+  out.mesh.setInterfaceFaces(std::move(interface));
   return out;
 }
 

@@ -1,6 +1,7 @@
 #include "needle_sim/adapt/spr_estimator.hpp"
 
 #include <Eigen/Dense>
+#include <array>
 #include <cmath>
 
 #include "needle_sim/fem/hex8.hpp"
@@ -19,24 +20,60 @@ Stress rotate(const Mat3& R, const Stress& s) {
 }
 
 // Least-squares linear fit sigma(x) = a + b (x - x0) through samples; returns the
-// coefficients (4 x 6) and whether the fit is a full 3D one.
+// coefficients (4 x 6) and whether the fit is a full 3D one. A full patch (the common
+// case) goes through the 4 x 4 normal equations in scaled coordinates; a rank-deficient
+// one through a complete orthogonal decomposition (minimum-norm fit).
 bool fitLinear(const std::vector<Vec3>& pts, const std::vector<Stress>& vals, const Vec3& x0,
                Eigen::Matrix<double, 4, 6>& coef) {
   const int m = static_cast<int>(pts.size());
-  Eigen::MatrixXd P(m, 4), V(m, 6);
   double scale = 0;
   for (int i = 0; i < m; ++i) scale = std::max(scale, (pts[i] - x0).norm());
   if (scale == 0) scale = 1;
+  Eigen::Matrix4d M = Eigen::Matrix4d::Zero();
+  Eigen::Matrix<double, 4, 6> rhs = Eigen::Matrix<double, 4, 6>::Zero();
   for (int i = 0; i < m; ++i) {
-    P(i, 0) = 1;
-    P.block<1, 3>(i, 1) = ((pts[i] - x0) / scale).transpose();
-    V.row(i) = vals[i].transpose();
+    Eigen::Vector4d p;
+    p << 1, (pts[i] - x0) / scale;
+    M.noalias() += p * p.transpose();
+    rhs.noalias() += p * vals[i].transpose();
   }
-  Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> cod(P);
-  cod.setThreshold(1e-8);
-  coef = cod.solve(V);
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix4d> eig(M, Eigen::EigenvaluesOnly);
+  const bool full = m >= 4 && eig.eigenvalues()[0] > 1e-12 * eig.eigenvalues()[3];
+  if (full) {
+    coef = M.ldlt().solve(rhs);
+  } else {
+    Eigen::MatrixXd P(m, 4), V(m, 6);
+    for (int i = 0; i < m; ++i) {
+      P(i, 0) = 1;
+      P.block<1, 3>(i, 1) = ((pts[i] - x0) / scale).transpose();
+      V.row(i) = vals[i].transpose();
+    }
+    Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> cod(P);
+    cod.setThreshold(1e-8);
+    coef = cod.solve(V);
+  }
   coef.bottomRows<3>() /= scale;
-  return cod.rank() == 4;
+  return full;
+}
+
+// Shape-function gradients (natural) at the 2x2x2 Gauss points and the centroid.
+struct GaussTable {
+  std::array<Eigen::Matrix<double, 8, 3>, 8> grad;
+  std::array<hex8::Vec8, 8> shape;
+  Eigen::Matrix<double, 8, 3> centroid_grad;
+  GaussTable() {
+    const double g = 1.0 / std::sqrt(3.0);
+    for (int q = 0; q < 8; ++q) {
+      const Vec3 xi(hex8::kCornerSigns[q][0] * g, hex8::kCornerSigns[q][1] * g, hex8::kCornerSigns[q][2] * g);
+      grad[q] = hex8::shapeGradNatural(xi);
+      shape[q] = hex8::shape(xi);
+    }
+    centroid_grad = hex8::shapeGradNatural(Vec3::Zero());
+  }
+};
+const GaussTable& gaussTable() {
+  static const GaussTable t;
+  return t;
 }
 }  // namespace
 
@@ -62,7 +99,7 @@ Stress SprEstimator::elementStress(const VecX& x, int e, const Vec3& xi) const {
   return elementStress(x, e, xi, model_.computeRotation(e, x));
 }
 
-Stress SprEstimator::elementStress(const VecX& x, int e, const Vec3& xi, const Mat3& R) const {
+Eigen::Matrix<double, 24, 1> SprEstimator::corotatedDisplacement(const VecX& x, int e, const Mat3& R) const {
   const HexMesh& mesh = model_.mesh();
   const auto& el = mesh.element(e);
   // Corotated displacement relative to the centroid (as the model's forces).
@@ -75,7 +112,12 @@ Stress SprEstimator::elementStress(const VecX& x, int e, const Vec3& xi, const M
   Xc /= 8;
   Eigen::Matrix<double, 24, 1> u;
   for (int a = 0; a < 8; ++a) u.segment<3>(3 * a) = R.transpose() * (node3(x, el[a]) - xc) - (mesh.node(el[a]) - Xc);
-  const auto X = mesh.elementCorners(e);
+  return u;
+}
+
+Stress SprEstimator::elementStress(const VecX& x, int e, const Vec3& xi, const Mat3& R) const {
+  const auto u = corotatedDisplacement(x, e, R);
+  const auto X = model_.mesh().elementCorners(e);
   const auto Gn = hex8::shapeGradNatural(xi);
   const Mat3 J = X.transpose() * Gn;
   const auto B = hex8::strainDisplacement(Gn * J.inverse());
@@ -141,20 +183,22 @@ ErrorEstimate SprEstimator::estimate(const VecX& x) const {
   }
 
   // Element errors in the energy norm (compliance D^-1), 2x2x2 Gauss.
-  const Eigen::Matrix<double, 6, 6> Dinv = model_.material().elasticity().inverse();
-  const double g = 1.0 / std::sqrt(3.0);
+  const auto& D = model_.material().elasticity();
+  const Eigen::Matrix<double, 6, 6> Dinv = D.inverse();
+  const GaussTable& gt = gaussTable();
   est.eta.assign(ne, 0.0);
   double sum = 0, energy = 0;
   for (int e = 0; e < ne; ++e) {
+    const auto& el = mesh.element(e);
     const auto X = mesh.elementCorners(e);
+    const Eigen::Matrix<double, 24, 1> u = corotatedDisplacement(x, e, R[e]);
     double eta2 = 0;
     for (int q = 0; q < 8; ++q) {
-      const Vec3 xi(hex8::kCornerSigns[q][0] * g, hex8::kCornerSigns[q][1] * g, hex8::kCornerSigns[q][2] * g);
-      const double detJ = (X.transpose() * hex8::shapeGradNatural(xi)).determinant();
-      const auto N = hex8::shape(xi);
+      const Mat3 J = X.transpose() * gt.grad[q];
+      const double detJ = J.determinant();
       Stress star = Stress::Zero();
-      for (int a = 0; a < 8; ++a) star += N[a] * est.recovered[mesh.element(e)[a]];
-      const Stress sh = elementStress(x, e, xi, R[e]);
+      for (int a = 0; a < 8; ++a) star += gt.shape[q][a] * est.recovered[el[a]];
+      const Stress sh = rotate(R[e], D * (hex8::strainDisplacement(gt.grad[q] * J.inverse()) * u));
       const Stress d = sh - star;
       eta2 += d.dot(Dinv * d) * detJ;
       energy += sh.dot(Dinv * sh) * detJ;

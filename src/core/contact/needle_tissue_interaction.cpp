@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <stdexcept>
 
 #include "needle_sim/contact/projected_gauss_seidel.hpp"
 #include "needle_sim/contact/puncture_constraint.hpp"
@@ -38,18 +39,31 @@ Mat3 frameFrom(const Vec3& d0) {
 
 NeedleTissueInteraction::NeedleTissueInteraction(const InteractionSettings& s, TissueBody& tissue,
                                                  std::vector<NeedleBody*> needles)
-    : settings_(s),
-      tissue_(tissue),
-      needles_(std::move(needles)),
-      surface_(tissue.mesh()),
-      rest_locator_(tissue.mesh()),
-      tracks_(needles_.size()),
-      column_of_(tissue.dofs().numFree(), -1) {
-  const HexMesh& mesh = tissue.mesh();
+    : settings_(s), needles_(std::move(needles)), tracks_(needles_.size()) {
+  bindTissue(tissue);
   for (size_t n = 0; n < needles_.size(); ++n) tracks_[n].sheathed = sheathOf(static_cast<int>(n)) >= 0;
-  node_elements_.resize(mesh.numNodes());
+}
+
+void NeedleTissueInteraction::bindTissue(TissueBody& tissue) {
+  tissue_ = &tissue;
+  const HexMesh& mesh = tissue.mesh();
+  surface_ = std::make_unique<TissueSurface>(mesh);
+  rest_locator_ = std::make_unique<PointLocator>(mesh);
+  column_of_.assign(tissue.dofs().numFree(), -1);
+  node_elements_.assign(mesh.numNodes(), {});
   for (int e = 0; e < mesh.numElements(); ++e)
     for (int a : mesh.element(e)) node_elements_[a].push_back(e);
+}
+
+void NeedleTissueInteraction::rebind(TissueBody& tissue) {
+  bindTissue(tissue);
+  // Constraint points are material points: found again by their rest position.
+  for (auto& c : constraints_) {
+    EmbeddedPoint ep;
+    if (!rest_locator_->locate(c->tissue.rest, ep))
+      throw std::logic_error("re-embedding a constraint point: rest position outside the new mesh");
+    c->tissue = ep;
+  }
 }
 
 int NeedleTissueInteraction::activePoints(int n) const {
@@ -123,8 +137,8 @@ double NeedleTissueInteraction::closestArcLength(int n, const Vec3& p) const {
 }
 
 bool NeedleTissueInteraction::locateCurrent(const Vec3& p, int hint, EmbeddedPoint& out) const {
-  const HexMesh& mesh = tissue_.mesh();
-  const VecX& x = tissue_.positions();
+  const HexMesh& mesh = tissue_->mesh();
+  const VecX& x = tissue_->positions();
   auto tryElement = [&](int e) {
     Eigen::Matrix<double, 8, 3> X;
     for (int a = 0; a < 8; ++a) X.row(a) = node3(x, mesh.element(e)[a]).transpose();
@@ -175,7 +189,7 @@ void NeedleTissueInteraction::layShaftPoints(int n, const EmbeddedPoint& upto,
     const double len = d.norm();
     if (len < sp) break;
     EmbeddedPoint ep;
-    if (rest_locator_.locate(tr.next_shaft_rest, ep)) {
+    if (rest_locator_->locate(tr.next_shaft_rest, ep)) {
       auto c = std::make_unique<ShaftConstraint>(settings_.friction);
       c->tissue = ep;
       c->needle = n;
@@ -186,8 +200,8 @@ void NeedleTissueInteraction::layShaftPoints(int n, const EmbeddedPoint& upto,
 }
 
 void NeedleTissueInteraction::updateGeometry() {
-  const HexMesh& mesh = tissue_.mesh();
-  const VecX& x = tissue_.positions();
+  const HexMesh& mesh = tissue_->mesh();
+  const VecX& x = tissue_->positions();
   std::vector<std::unique_ptr<ContactConstraint>> kept;
   for (auto& c : constraints_) {
     const NeedleBody& nd = *needles_[c->needle];
@@ -232,7 +246,7 @@ void NeedleTissueInteraction::updateGeometry() {
       const Vec3 axis = (p - nd.state().p[tip - 1]).normalized();
       const double r = 0.5 * settings_.shaft_spacing + std::abs(c->gap[0]);
       SurfaceHit hit;
-      if (surface_.firstEntry(x, p - axis * r, p + axis * r, hit)) {
+      if (surface_->firstEntry(x, p - axis * r, p + axis * r, hit)) {
         c->tissue = hit.material;
         c->frame = frameFrom(hit.normal);
       }
@@ -252,8 +266,8 @@ void NeedleTissueInteraction::updateGeometry() {
 InteractionStats NeedleTissueInteraction::solve(double h) {
   const auto t0 = std::chrono::steady_clock::now();
   InteractionStats st;
-  const HexMesh& mesh = tissue_.mesh();
-  const VecX& xT = tissue_.positions();
+  const HexMesh& mesh = tissue_->mesh();
+  const VecX& xT = tissue_->positions();
 
   // 1. Contact detection for needles not in the tissue.
   for (size_t n = 0; n < needles_.size(); ++n) {
@@ -268,7 +282,7 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
     if (v.dot(axis) <= 0) continue;  // only a needle moving forward can meet the surface
     const double reach = h * v.norm() + 1e-9;
     SurfaceHit hit;
-    if (!surface_.firstEntry(xT, p - axis * reach, p + axis * (reach + std::max(0.0, h * v.dot(axis))), hit)) continue;
+    if (!surface_->firstEntry(xT, p - axis * reach, p + axis * (reach + std::max(0.0, h * v.dot(axis))), hit)) continue;
     auto c = std::make_unique<PunctureConstraint>(settings_.friction);
     c->tissue = hit.material;
     c->needle = static_cast<int>(n);
@@ -285,7 +299,7 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
 
   // 2. Rows: touched tissue DOFs (columns of the compliance) and needle DOFs.
   const int np = st.points, m = 3 * np;
-  const DofMap& tdofs = tissue_.dofs();
+  const DofMap& tdofs = tissue_->dofs();
   std::vector<int> tcols;  // free tissue DOFs touched
   std::vector<std::vector<int>> ncols(needles_.size());
   std::vector<std::vector<int>> ncol_of(needles_.size());
@@ -356,7 +370,7 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
   // 3. Compliance from each body's factor; free velocities of the rows.
   Eigen::MatrixXd C, W = Eigen::MatrixXd::Zero(m, m);
   if (!tcols.empty()) {
-    tissue_.complianceBlock(tcols, C);
+    tissue_->complianceBlock(tcols, C);
     W.noalias() += HT * (C * HT.transpose());
   }
   for (size_t n = 0; n < needles_.size(); ++n) {
@@ -368,8 +382,8 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
   VecX u_free = VecX::Zero(m);
   {
     VecX vT(tcols.size());
-    const VecX& v = tissue_.velocities();
-    const VecX& dv = tissue_.velocityChangeFree();
+    const VecX& v = tissue_->velocities();
+    const VecX& dv = tissue_->velocityChangeFree();
     for (size_t i = 0; i < tcols.size(); ++i) vT[static_cast<Eigen::Index>(i)] = v[tdofs.freeToFull()[tcols[i]]] + dv[tcols[i]];
     u_free += HT * vT;
     for (size_t n = 0; n < needles_.size(); ++n) {
@@ -421,7 +435,7 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
   for (int p = 0; p < np; ++p) constraints_[p]->lambda = lambda.segment<3>(3 * p);
 
   // 5. Corrections dv = h A^-1 H^T lambda for each body.
-  if (!tcols.empty()) tissue_.addInverseColumns(tcols, h * (HT.transpose() * lambda));
+  if (!tcols.empty()) tissue_->addInverseColumns(tcols, h * (HT.transpose() * lambda));
   for (size_t n = 0; n < needles_.size(); ++n)
     if (!ncols[n].empty()) needles_[n]->addInverseColumns(ncols[n], h * (HN[n].transpose() * lambda));
   for (int f : tcols) column_of_[f] = -1;
@@ -430,8 +444,8 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
 }
 
 void NeedleTissueInteraction::afterCommit() {
-  const HexMesh& mesh = tissue_.mesh();
-  const VecX& x = tissue_.positions();
+  const HexMesh& mesh = tissue_->mesh();
+  const VecX& x = tissue_->positions();
   std::vector<std::unique_ptr<ContactConstraint>> created;
   for (auto it = constraints_.begin(); it != constraints_.end();) {
     ContactConstraint& c = **it;

@@ -88,7 +88,7 @@ std::vector<BoundaryFace> HexMesh::boundaryFaces() const {
     }
   std::vector<BoundaryFace> out;
   for (const auto& kv : seen)
-    if (kv.second.first == 1) out.push_back(faces[kv.second.second]);
+    if (kv.second.first == 1 && !interface_faces_.count(kv.first)) out.push_back(faces[kv.second.second]);
   std::sort(out.begin(), out.end(), [](const BoundaryFace& a, const BoundaryFace& b) {
     return a.element != b.element ? a.element < b.element : a.face < b.face;
   });

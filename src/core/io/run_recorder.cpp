@@ -34,7 +34,7 @@ RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, const Op
     : sim_(sim), options_(options) {
   dir_ = dir;
   const bool centerline = options.centerline;
-  if ((options.error_estimate || options.vtu) && sim.hasTissue()) spr_ = std::make_unique<SprEstimator>(sim.tissue().model());
+  estimate_ = sim.hasTissue() && (options.error_estimate || sim.adaptation());
   std::error_code ec;
   fs::create_directories(dir_, ec);
   if (ec) throw std::runtime_error("cannot create output directory '" + dir_ + "': " + ec.message());
@@ -61,7 +61,12 @@ RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, const Op
     if (sim.interaction()) csv_ << ',' << n << "_state," << n << "_constraints";
   }
   if (sim.interaction()) csv_ << ",constraint_points,constraint_iterations,constraint_residual,constraint_ms";
-  if (spr_ && options_.error_estimate) csv_ << ",eta_global,eta_max,eta_relative";
+  if (estimate_) csv_ << ",eta_global,eta_max,eta_relative";
+  if (const auto* a = sim.adaptation()) {
+    csv_ << ",tissue_elements";
+    for (int l = 0; l <= a->settings().max_level; ++l) csv_ << ",elements_L" << l;
+    csv_ << ",refined,coarsened,estimate_ms,mark_refine_ms,rebuild_ms";
+  }
   csv_ << '\n' << std::setprecision(10);
 }
 
@@ -99,14 +104,31 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
   if (sim_.interaction())
     csv_ << ',' << s.constraint_points << ',' << s.constraint_iterations << ',' << s.constraint_residual << ','
          << s.constraint_ms;
-  if (spr_ && options_.error_estimate) {
-    const ErrorEstimate est = spr_->estimate(sim_.tissue().positions());
-    eta_last_ = est.global;
-    eta_max_last_ = est.max;
-    const double rel = est.energy > 0 ? est.global / est.energy : 0;
-    eta_rel_max_ = std::max(eta_rel_max_, rel);
-    csv_ << ',' << est.global << ',' << est.max << ',' << rel;
+  if (estimate_) {
+    // With --error-estimate every step; otherwise (adaptivity) the last pass's estimate.
+    const ErrorEstimate* est = options_.error_estimate ? &sim_.errorEstimate() : sim_.lastEstimate();
+    if (est) {
+      eta_last_ = est->global;
+      eta_max_last_ = est->max;
+      const double rel = est->energy > 0 ? est->global / est->energy : 0;
+      eta_rel_max_ = std::max(eta_rel_max_, rel);
+      csv_ << ',' << est->global << ',' << est->max << ',' << rel;
+    } else {
+      csv_ << ",0,0,0";
+    }
   }
+  if (const auto* a = sim_.adaptation()) {
+    csv_ << ',' << sim_.tissue().mesh().numElements();
+    for (int n : a->elementsPerLevel()) csv_ << ',' << n;
+    csv_ << ',' << s.refined << ',' << s.coarsened << ',' << s.estimate_ms << ',' << s.mark_refine_ms << ','
+         << s.rebuild_ms;
+    adapt_ms_.push_back(s.adapt_ms());
+    if (ms > 0) adapt_share_.push_back(s.adapt_ms() / ms);
+    mesh_changes_ += s.mesh_changed;
+    refined_total_ += s.refined;
+    coarsened_total_ += s.coarsened;
+  }
+  if (sim_.hasTissue()) max_tissue_dofs_ = std::max(max_tissue_dofs_, sim_.tissue().mesh().numDofs());
   csv_ << '\n';
   constraint_iterations_ += s.constraint_iterations;
   max_constraint_points_ = std::max(max_constraint_points_, s.constraint_points);
@@ -175,8 +197,21 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                  {"linear_residual_max", max_linear_residual_},
                  {"factorizations", factorizations_},
                  {"newton_iterations_total", newton_iterations_}};
-  if (spr_ && options_.error_estimate)
+  if (estimate_)
     j["error_estimate"] = {{"eta_global", eta_last_}, {"eta_max", eta_max_last_}, {"eta_relative_max", eta_rel_max_}};
+  if (const auto* a = sim_.adaptation()) {
+    double total_adapt = std::accumulate(adapt_ms_.begin(), adapt_ms_.end(), 0.0);
+    double total_step = std::accumulate(step_ms_.begin(), step_ms_.end(), 0.0);
+    j["adaptivity"] = {{"tissue_dofs_final", sim_.tissue().mesh().numDofs()},
+                       {"tissue_dofs_max", max_tissue_dofs_},
+                       {"elements_per_level", a->elementsPerLevel()},
+                       {"hanging_nodes", a->active().numHanging()},
+                       {"mesh_changes", mesh_changes_},
+                       {"cells_refined_total", refined_total_},
+                       {"cells_coarsened_total", coarsened_total_},
+                       {"adapt_ms", pj(percentiles(adapt_ms_))},
+                       {"adapt_share_of_run", total_step > 0 ? total_adapt / total_step : 0.0}};
+  }
   if (sim_.interaction())
     j["interaction"] = {{"constraint_iterations_total", constraint_iterations_},
                         {"constraint_points_max", max_constraint_points_},
@@ -201,12 +236,13 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
 
 void RunRecorder::finish(double wall_s) {
   csv_.close();
-  if (options_.vtu && spr_) {
+  if (options_.vtu && sim_.hasTissue()) {
     const auto& body = sim_.tissue();
-    const ErrorEstimate est = spr_->estimate(body.positions());
+    const ErrorEstimate& est = sim_.errorEstimate();
     VtuCellData cells;
     for (const auto& sgm : est.centroid_stress) cells.von_mises.push_back(SprEstimator::vonMises(sgm));
     cells.eta = est.eta;
+    cells.level = sim_.elementLevels();
     writeVtu((fs::path(dir_) / "tissue.vtu").string(), body.mesh(), body.positions(), cells);
   }
   fs::rename(fs::path(dir_) / "timeseries.partial.csv", fs::path(dir_) / "timeseries.csv");

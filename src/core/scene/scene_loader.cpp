@@ -424,6 +424,67 @@ void readInteraction(const Reader& r, const YAML::Node& n, Scene& s) {
   s.interaction = is;
 }
 
+void readAdaptivity(const Reader& r, const YAML::Node& n, Scene& s) {
+  const std::string p = "adaptivity";
+  if (!n.IsMap()) r.fail(p, "must be a map {estimator, marking, theta, max_level, ...}");
+  r.checkKeys(n, p, {"estimator", "marking", "theta", "max_level", "max_dofs", "tolerance", "every_steps", "coarsen"});
+  AdaptivitySettings a;
+  if (auto v = r.child(n, p, "estimator", false)) {
+    const std::string e = r.string(v, p + ".estimator");
+    if (e != "spr") r.fail(p + ".estimator", "unknown estimator '" + e + "' (available: spr)");
+  }
+  if (auto v = r.child(n, p, "marking", false)) {
+    const std::string m = r.string(v, p + ".marking");
+    if (m == "max") a.marking = AdaptivitySettings::Marking::Max;
+    else if (m == "bulk") a.marking = AdaptivitySettings::Marking::Bulk;
+    else r.fail(p + ".marking", "must be max or bulk, got '" + m + "'");
+  }
+  a.theta = r.number(r.child(n, p, "theta", true), p + ".theta");
+  if (!(a.theta > 0 && a.theta <= 1)) r.fail(p + ".theta", "must be in (0, 1], got " + Reader::fmt(a.theta));
+  auto integerIn = [&](const YAML::Node& parent, const std::string& path, const char* key, long long lo, long long hi,
+                       int& out) {
+    if (auto v = r.child(parent, path, key, false)) {
+      const std::string k = Reader::join(path, key);
+      const long long x = r.integer(v, k);
+      if (x < lo || x > hi)
+        r.fail(k, "must be in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got " + std::to_string(x));
+      out = static_cast<int>(x);
+    }
+  };
+  integerIn(n, p, "max_level", 0, 6, a.max_level);
+  integerIn(n, p, "max_dofs", 0, 100000000, a.max_dofs);
+  integerIn(n, p, "every_steps", 1, 1000000000, a.every_steps);
+  if (auto v = r.child(n, p, "tolerance", false)) {
+    a.tolerance = r.number(v, p + ".tolerance");
+    if (a.tolerance < 0) r.fail(p + ".tolerance", "must be >= 0, got " + Reader::fmt(a.tolerance));
+  }
+  if (auto c = r.child(n, p, "coarsen", false)) {
+    const std::string q = p + ".coarsen";
+    if (!c.IsMap()) r.fail(q, "must be a map {enabled, theta_coarsen, after}");
+    r.checkKeys(c, q, {"enabled", "theta_coarsen", "after"});
+    if (auto v = r.child(c, q, "enabled", false)) {
+      if (!v.IsScalar() || (v.Scalar() != "true" && v.Scalar() != "false"))
+        r.fail(q + ".enabled", "must be true or false");
+      a.coarsen = v.Scalar() == "true";
+    }
+    if (auto v = r.child(c, q, "theta_coarsen", false)) a.theta_coarsen = r.number(v, q + ".theta_coarsen");
+    if (!(a.theta_coarsen > 0 && a.theta_coarsen < 1))
+      r.fail(q + ".theta_coarsen", "must be in (0, 1), got " + Reader::fmt(a.theta_coarsen));
+    // A merged parent's error is about twice its children's combined (linear elements,
+    // h doubled): below theta / 2 it cannot be marked again at once, so nothing flickers.
+    if (a.coarsen && a.marking == AdaptivitySettings::Marking::Max && !(a.theta_coarsen < 0.5 * a.theta))
+      r.fail(q + ".theta_coarsen", "must be < theta / 2 = " + Reader::fmt(0.5 * a.theta) +
+                                       " (hysteresis: a merged element would be refined again at once), got " +
+                                       Reader::fmt(a.theta_coarsen));
+    integerIn(c, q, "after", 1, 1000000, a.coarsen_after);
+  }
+  if (!s.has_tissue) r.fail(p, "needs a tissue (the scene has none)");
+  if (a.max_dofs == 0 && s.tissue.cells.cast<double>().prod() * std::pow(8.0, a.max_level) > 5e7)
+    r.fail(p + ".max_level", "a fully refined grid of " + std::to_string(s.tissue.cells.prod()) + " cells at level " +
+                                 std::to_string(a.max_level) + " would exceed 5e7 elements; lower max_level, set a coarser grid or a max_dofs budget");
+  s.adaptivity = a;
+}
+
 void readProbes(const Reader& r, const YAML::Node& n, Scene& s) {
   if (!n.IsSequence()) r.fail("probes", "must be a list of {name, point}");
   static const std::regex ident("[A-Za-z0-9_]+");
@@ -494,7 +555,8 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
   Reader r(file);
   if (!root.IsMap()) r.fail("", std::string("scene must be a YAML map at the top level, got ") + typeName(root));
   for (const auto& o : overrides) applyOverride(root, o, file);
-  r.checkKeys(root, "", {"name", "description", "time", "solver", "tissue", "needle", "needles", "interaction", "probes"});
+  r.checkKeys(root, "", {"name", "description", "time", "solver", "tissue", "needle", "needles", "interaction", "adaptivity",
+                        "probes"});
   Scene s;
   s.file = file;
   if (auto v = r.child(root, "", "name", false)) s.name = r.string(v, "name");
@@ -510,6 +572,7 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
   readNeedles(r, root, s);
   if (!s.has_tissue && s.needles.empty()) r.fail("tissue", "missing: a scene needs a tissue, a needle, or both");
   if (auto v = r.child(root, "", "interaction", false)) readInteraction(r, v, s);
+  if (auto v = r.child(root, "", "adaptivity", false)) readAdaptivity(r, v, s);
   if (auto v = r.child(root, "", "probes", false)) {
     if (!s.has_tissue) r.fail("probes", "probes are tissue points, but the scene has no tissue");
     readProbes(r, v, s);

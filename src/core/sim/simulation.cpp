@@ -1,6 +1,8 @@
 #include "needle_sim/sim/simulation.hpp"
 
 #include <algorithm>
+#include <chrono>
+#include <stdexcept>
 #include <sstream>
 
 #include "needle_sim/core/error.hpp"
@@ -19,21 +21,18 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
   HexMesh mesh;
   try {
     mesh = buildTissueMesh(scene.tissue);
+    if (scene.adaptivity) {
+      // The tissue is numbered as the adaptive forest numbers its active mesh.
+      adaptation_ = std::make_unique<MeshAdaptation>(*scene.adaptivity, mesh);
+      mesh = adaptation_->active().mesh;
+    }
     tissue_ = std::make_unique<TissueBody>(std::move(mesh), scene.tissue, scene.solver, scene.file);
   } catch (const std::invalid_argument& e) {
     throw InputError(scene.file, "tissue.geometry", std::string("invalid mesh: ") + e.what());
   }
   diag_ = (tissue_->mesh().boundsMax() - tissue_->mesh().boundsMin()).norm();
+  embedProbes();
   PointLocator locator(tissue_->mesh());
-  for (size_t i = 0; i < scene.probes.size(); ++i) {
-    EmbeddedPoint ep;
-    if (!locator.locate(scene.probes[i].point, ep)) {
-      std::ostringstream m;
-      m << "point (" << scene.probes[i].point.transpose() << ") lies outside the tissue";
-      throw InputError(scene.file, "probes[" + std::to_string(i) + "].point", m.str());
-    }
-    probes_.push_back(ep);
-  }
   // A needle must start outside the tissue: puncture happens on the surface.
   for (size_t n = 0; n < needles_.size(); ++n)
     for (int i = 0; i < needles_[n]->beam().numNodes(); ++i) {
@@ -51,6 +50,80 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
     for (auto& n : needles_) nd.push_back(n.get());
     interaction_ = std::make_unique<NeedleTissueInteraction>(*scene.interaction, *tissue_, nd);
   }
+}
+
+void Simulation::embedProbes() {
+  probes_.clear();
+  PointLocator locator(tissue_->mesh());
+  for (size_t i = 0; i < scene_.probes.size(); ++i) {
+    EmbeddedPoint ep;
+    if (!locator.locate(scene_.probes[i].point, ep)) {
+      std::ostringstream m;
+      m << "point (" << scene_.probes[i].point.transpose() << ") lies outside the tissue";
+      throw InputError(scene_.file, "probes[" + std::to_string(i) + "].point", m.str());
+    }
+    probes_.push_back(ep);
+  }
+}
+
+std::vector<int> Simulation::elementLevels() const {
+  if (adaptation_) return adaptation_->active().level;
+  return std::vector<int>(tissue_ ? tissue_->mesh().numElements() : 0, 0);
+}
+
+const ErrorEstimate& Simulation::errorEstimate() const {
+  if (estimate_step_ != step_) {
+    estimate_ever_ = true;
+    if (!estimator_) estimator_ = std::make_unique<SprEstimator>(tissue_->model());
+    estimate_ = estimator_->estimate(tissue_->positions());
+    estimate_step_ = step_;
+  }
+  return estimate_;
+}
+
+void Simulation::rebuildTissue() {
+  const VecX x = adaptation_->transfer(tissue_->positions());
+  const VecX v = adaptation_->transfer(tissue_->velocities());
+  const auto& act = adaptation_->active();
+  estimator_.reset();
+  estimate_step_ = -1;
+  tissue_ = std::make_unique<TissueBody>(act.mesh, scene_.tissue, scene_.solver, scene_.file, act.hanging);
+  tissue_->setState(x, v);
+  embedProbes();
+  if (interaction_) interaction_->rebind(*tissue_);
+}
+
+AdaptationResult Simulation::refineElements(const std::vector<int>& elements) {
+  if (!adaptation_) throw std::logic_error("refineElements: the scene has no adaptivity section");
+  const AdaptationResult r = adaptation_->refineElements(elements);
+  if (r.changed) rebuildTissue();
+  return r;
+}
+
+AdaptationResult Simulation::coarsenElements(const std::vector<int>& elements) {
+  if (!adaptation_) throw std::logic_error("coarsenElements: the scene has no adaptivity section");
+  const AdaptationResult r = adaptation_->coarsenElements(elements);
+  if (r.changed) rebuildTissue();
+  return r;
+}
+
+void Simulation::adaptMesh() {
+  using clock = std::chrono::steady_clock;
+  auto ms = [](clock::time_point a, clock::time_point b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
+  const auto t0 = clock::now();
+  const ErrorEstimate& est = errorEstimate();
+  const auto t1 = clock::now();
+  const AdaptationResult r = adaptation_->adapt(est);
+  const auto t2 = clock::now();
+  if (r.changed) rebuildTissue();
+  const auto t3 = clock::now();
+  last_.adapted = true;
+  last_.mesh_changed = r.changed;
+  last_.refined = r.refined;
+  last_.coarsened = r.coarsened;
+  last_.estimate_ms = ms(t0, t1);
+  last_.mark_refine_ms = ms(t1, t2);
+  last_.rebuild_ms = ms(t2, t3);
 }
 
 Vec3 Simulation::probeDisplacement(int i) const {
@@ -141,6 +214,18 @@ const StepStats& Simulation::step() {
   }
   step_ = k;
   checkState();
+  // Estimate, mark, refine / coarsen on the state just reached; the next step runs on the
+  // new mesh. (The estimate of this step stays available to outputs when nothing changed.)
+  // Contact events (first touch, puncture, a new or released constraint point) change the
+  // load abruptly and locally: the mesh adapts at once rather than up to every_steps later.
+  if (adaptation_) {
+    long signature = 0;
+    if (interaction_)
+      for (int n = 0; n < numNeedles(); ++n)
+        signature = signature * 1000003 + interaction_->activePoints(n) * 8 + static_cast<int>(interaction_->state(n));
+    if (step_ % adaptation_->settings().every_steps == 0 || signature != contact_signature_) adaptMesh();
+    contact_signature_ = signature;
+  }
   return last_;
 }
 

@@ -1,0 +1,19 @@
+#pragma once
+// Parameters of error-controlled adaptivity (scene section `adaptivity`). Absent section:
+// no estimator, no marking, no cost.
+
+namespace needle_sim {
+
+struct AdaptivitySettings {
+  enum class Marking { Max, Bulk } marking = Marking::Max;
+  double theta = 0.3;       // max rule: eta_e >= theta max eta; bulk: fraction of sum eta^2
+  int max_level = 2;        // refinement levels above the scene's grid
+  int max_dofs = 0;         // budget on all tissue DOFs (0: none)
+  double tolerance = 0.0;   // relative estimate eta / |sigma_h|_E below which nothing is refined
+  int every_steps = 1;      // estimate (and adapt) every this many steps
+  bool coarsen = false;
+  double theta_coarsen = 0.05;  // merge 8 children when sqrt(sum eta_c^2) < theta_coarsen max eta ...
+  int coarsen_after = 3;        // ... at this many consecutive estimates (hysteresis)
+};
+
+}  // namespace needle_sim

@@ -1,0 +1,151 @@
+#!/usr/bin/python3
+"""Run time against probe error on the paper's phantom insertion: uniform 8x4x4, 16x8x8 and
+32x16x16 meshes against adaptive meshes from 8x4x4 (Bui et al., Section 3.1). The error of a
+run is the largest difference of any probe displacement (probes 1..7 on the path, 1A..1E
+on the radial line) at any step from the 32x16x16 run, relative to the largest probe
+displacement of that run.
+
+Sample run (about 4 minutes on the 2-core machine, most of it the 32x16x16 reference):
+
+    scripts/adaptivity_study.py --out results/adaptivity_study
+
+writes results/adaptivity_study/{study.csv, study.md, runtime_vs_error.png} and one run
+directory per configuration (kept: --reuse skips runs whose summary.json says ok).
+"""
+import argparse
+import csv
+import json
+import math
+import os
+import subprocess
+import sys
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+SCENES = os.path.join(ROOT, "config", "scenes")
+
+# name, scene file, overrides
+RUNS = [
+    ("uniform 8x4x4", "phantom_insertion_8x4x4.yaml", []),
+    ("uniform 16x8x8", "phantom_insertion_16x8x8.yaml", []),
+    ("uniform 32x16x16", "phantom_insertion_32x16x16.yaml", []),
+    ("adaptive theta 0.3, 1 level", "phantom_insertion_adaptive.yaml", ["adaptivity.max_level=1"]),
+    ("adaptive theta 0.3, 2 levels", "phantom_insertion_adaptive.yaml", []),
+    ("adaptive theta 0.1, 2 levels", "phantom_insertion_adaptive.yaml", ["adaptivity.theta=0.1"]),
+    ("adaptive theta 0.3, 2 levels, no coarsening", "phantom_insertion_adaptive.yaml",
+     ["adaptivity.coarsen.enabled=false"]),
+]
+REFERENCE = "uniform 32x16x16"
+
+
+def slug(name):
+    return "".join(c if c.isalnum() else "_" for c in name).strip("_")
+
+
+def probe_series(run_dir):
+    with open(os.path.join(run_dir, "timeseries.csv"), newline="") as f:
+        rows = list(csv.DictReader(f))
+    names = [k[:-3] for k in rows[0] if k.endswith("_ux")]
+    series = {n: [(float(r[n + "_ux"]), float(r[n + "_uy"]), float(r[n + "_uz"])) for r in rows] for n in names}
+    return rows, series
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default=os.path.join(ROOT, "results", "adaptivity_study"))
+    ap.add_argument("--tool", default=os.path.join(ROOT, "build", "devel", "lib", "needle_sim", "needle_sim"))
+    ap.add_argument("--reuse", action="store_true", help="keep runs whose summary.json says ok")
+    args = ap.parse_args()
+    if not os.access(args.tool, os.X_OK):
+        sys.exit(f"adaptivity_study: no needle_sim tool at {args.tool} (build first: bash scripts/test.sh)")
+    os.makedirs(args.out, exist_ok=True)
+
+    results = {}
+    for name, scene, sets in RUNS:
+        d = os.path.join(args.out, slug(name))
+        summary_path = os.path.join(d, "summary.json")
+        ok = False
+        if args.reuse and os.path.exists(summary_path):
+            with open(summary_path) as f:
+                ok = json.load(f).get("status") == "ok"
+        if not ok:
+            cmd = [args.tool, "run", os.path.join(SCENES, scene), "--out", d, "--quiet"]
+            for s in sets:
+                cmd += ["--set", s]
+            print("+", " ".join(cmd), flush=True)
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        with open(summary_path) as f:
+            summary = json.load(f)
+        rows, series = probe_series(d)
+        results[name] = (summary, rows, series)
+
+    _, ref_rows, ref = results[REFERENCE]
+    umax = max(math.sqrt(sum(c * c for c in u)) for s in ref.values() for u in s)
+    table = []
+    for name, _, _ in RUNS:
+        summary, rows, series = results[name]
+        err_path = err_radial = 0.0
+        for p, s in series.items():
+            e = max(math.dist(a, b) for a, b in zip(s, ref[p])) / umax
+            if "A" <= p[-1] <= "E":
+                err_radial = max(err_radial, e)
+            else:
+                err_path = max(err_path, e)
+        ad = summary.get("adaptivity", {})
+        dofs = [int(r["dofs"]) for r in rows]
+        table.append({
+            "run": name,
+            "tissue_dofs_max": ad.get("tissue_dofs_max", summary["tissue"]["dofs"]),
+            "dofs_median": sorted(dofs)[len(dofs) // 2],
+            "wall_s": summary["wall_time_s"],
+            "step_median_ms": summary["step_ms"]["median"],
+            "step_max_ms": summary["step_ms"]["max"],
+            "adapt_share": ad.get("adapt_share_of_run", 0.0),
+            "error_path": err_path,
+            "error_radial": err_radial,
+        })
+    ref_wall = next(t["wall_s"] for t in table if t["run"] == REFERENCE)
+    for t in table:
+        t["speedup_vs_32"] = ref_wall / t["wall_s"]
+
+    keys = list(table[0].keys())
+    with open(os.path.join(args.out, "study.csv"), "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(table)
+    with open(os.path.join(args.out, "study.md"), "w") as f:
+        f.write("| run | tissue DOFs max | DOFs median | wall s | speed-up vs 32x16x16 | step median ms | "
+                "step max ms | adaptivity share | probe error path | probe error radial |\n")
+        f.write("|---|---|---|---|---|---|---|---|---|---|\n")
+        for t in table:
+            f.write(f"| {t['run']} | {t['tissue_dofs_max']:,} | {t['dofs_median']:,} | {t['wall_s']:.2f} | "
+                    f"{t['speedup_vs_32']:.1f}x | {t['step_median_ms']:.3f} | {t['step_max_ms']:.1f} | "
+                    f"{100 * t['adapt_share']:.1f} % | {t['error_path']:.2e} | {t['error_radial']:.2e} |\n")
+    print(open(os.path.join(args.out, "study.md")).read())
+
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for t in table:
+        if t["run"] == REFERENCE:
+            continue
+        err = max(t["error_path"], t["error_radial"])
+        marker = "s" if t["run"].startswith("uniform") else "o"
+        ax.loglog(t["wall_s"], err, marker, markersize=8, label=f"{t['run']} ({t['tissue_dofs_max']:,} DOFs)")
+    ax.axvline(ref_wall, color="gray", linestyle="--", label=f"{REFERENCE} run time ({ref_wall:.0f} s)")
+    ax.set_xlabel("run time [s] (5,000 steps)")
+    ax.set_ylabel("max probe error vs 32x16x16 (relative)")
+    ax.set_title("Phantom insertion: run time against probe error")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    png = os.path.join(args.out, "runtime_vs_error.png")
+    fig.savefig(png, dpi=120)
+    print("wrote", png)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,171 @@
+#include "needle_sim/adapt/mesh_adaptation.hpp"
+
+#include <algorithm>
+#include <cassert>
+#include <cmath>
+#include <functional>
+
+namespace needle_sim {
+
+MeshAdaptation::MeshAdaptation(const AdaptivitySettings& s, const HexMesh& coarse) : settings_(s), forest_(coarse) {
+  if (s.marking == AdaptivitySettings::Marking::Bulk)
+    marking_ = std::make_unique<BulkMarking>(s.theta);
+  else
+    marking_ = std::make_unique<MaxMarking>(s.theta);
+  active_ = forest_.active();
+  previous_node_id_ = active_.node_id;
+}
+
+void MeshAdaptation::activate() {
+  previous_node_id_ = active_.node_id;
+  active_ = forest_.active();
+}
+
+AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est) {
+  const int ne = active_.mesh.numElements();
+  assert(static_cast<int>(est.eta.size()) == ne);
+  AdaptationResult res;
+
+  // Noise floor: indicators below 1e-6 of the largest global estimate seen are round-off
+  // of a field that has (nearly) vanished, e.g. after the needle is withdrawn; they are
+  // never marked, and children below it may always be merged.
+  eta_scale_ = std::max(eta_scale_, est.global);
+  const double floor = kNoiseFloor * eta_scale_;
+
+  // 1. Marking, unless the estimate already meets the tolerance.
+  std::vector<int> marked;
+  res.below_tolerance = settings_.tolerance > 0 && est.energy > 0 && est.global <= settings_.tolerance * est.energy;
+  if (!res.below_tolerance) {
+    std::vector<char> refinable(ne);
+    for (int e = 0; e < ne; ++e) refinable[e] = active_.level[e] < settings_.max_level && est.eta[e] > floor;
+    marked = marking_->mark(est.eta, refinable);
+  }
+  res.marked = static_cast<int>(marked.size());
+  std::vector<char> is_marked(ne, 0);
+  for (int e : marked) is_marked[e] = 1;
+
+  // 2. Coarsening candidates: parents whose eight children are active and whose combined
+  //    error has stayed below theta_coarsen * max eta for coarsen_after passes.
+  std::vector<int> to_coarsen;
+  if (settings_.coarsen) {
+    struct Family {
+      int active = 0;
+      double eta2 = 0;
+      bool marked = false;
+    };
+    std::unordered_map<int, Family> fam;
+    for (int e = 0; e < ne; ++e) {
+      const int p = forest_.parent(active_.cell[e]);
+      if (p < 0) continue;
+      Family& f = fam[p];
+      ++f.active;
+      f.eta2 += est.eta[e] * est.eta[e];
+      f.marked = f.marked || is_marked[e];
+    }
+    std::unordered_map<int, int> small;
+    for (const auto& [p, f] : fam) {
+      if (f.active != 8 || f.marked || !(std::sqrt(f.eta2) < std::max(settings_.theta_coarsen * est.max, floor)))
+        continue;
+      auto it = small_for_.find(p);
+      const int n = (it == small_for_.end() ? 0 : it->second) + 1;
+      small[p] = n;
+      if (n >= settings_.coarsen_after) to_coarsen.push_back(p);
+    }
+    small_for_ = std::move(small);
+    std::sort(to_coarsen.begin(), to_coarsen.end());
+    // Finest first, so that a parent whose merge is blocked by a finer neighbour about to
+    // be merged too gets its chance in this pass.
+    std::stable_sort(to_coarsen.begin(), to_coarsen.end(),
+                     [&](int a, int b) { return forest_.level(a) > forest_.level(b); });
+    res.coarsened = forest_.coarsen(to_coarsen);
+    for (int p : to_coarsen)
+      if (forest_.isActive(p)) small_for_.erase(p);
+  }
+
+  // 3. Refinement, largest errors first, within the DOF budget.
+  std::vector<int> cells;
+  std::sort(marked.begin(), marked.end(), [&](int a, int b) { return est.eta[a] > est.eta[b]; });
+  for (int e : marked) cells.push_back(active_.cell[e]);
+  if (settings_.max_dofs <= 0) {
+    res.refined = forest_.refine(cells);
+  } else {
+    for (int c : cells) {
+      if (!forest_.isActive(c)) continue;  // split already by the balance of an earlier one
+      if (3 * forest_.numActiveNodes() >= settings_.max_dofs) {
+        res.budget_reached = true;
+        break;
+      }
+      RefinableHexMesh backup = forest_;
+      const int n = forest_.refine({c});
+      if (3 * forest_.numActiveNodes() > settings_.max_dofs) {
+        forest_ = std::move(backup);
+        res.budget_reached = true;
+        break;
+      }
+      res.refined += n;
+    }
+  }
+  res.changed = res.refined > 0 || res.coarsened > 0;
+  if (res.changed) activate();
+  return res;
+}
+
+AdaptationResult MeshAdaptation::refineElements(const std::vector<int>& elements) {
+  AdaptationResult res;
+  std::vector<int> cells;
+  for (int e : elements) cells.push_back(active_.cell.at(e));
+  res.marked = static_cast<int>(cells.size());
+  res.refined = forest_.refine(cells);
+  res.changed = res.refined > 0;
+  if (res.changed) activate();
+  return res;
+}
+
+AdaptationResult MeshAdaptation::coarsenElements(const std::vector<int>& elements) {
+  AdaptationResult res;
+  std::vector<int> parents;
+  for (int e : elements) {
+    const int p = forest_.parent(active_.cell.at(e));
+    if (p >= 0) parents.push_back(p);
+  }
+  std::sort(parents.begin(), parents.end());
+  parents.erase(std::unique(parents.begin(), parents.end()), parents.end());
+  res.coarsened = forest_.coarsen(parents);
+  res.changed = res.coarsened > 0;
+  if (res.changed) activate();
+  return res;
+}
+
+VecX MeshAdaptation::transfer(const VecX& previous) const {
+  assert(previous.size() == 3 * static_cast<Eigen::Index>(previous_node_id_.size()));
+  std::vector<Vec3> value(forest_.numNodes(), Vec3::Zero());
+  std::vector<char> known(forest_.numNodes(), 0);
+  for (size_t i = 0; i < previous_node_id_.size(); ++i) {
+    value[previous_node_id_[i]] = previous.segment<3>(3 * i);
+    known[previous_node_id_[i]] = 1;
+  }
+  // Sources have smaller ids and end at coarse nodes, which every mesh keeps.
+  std::function<const Vec3&(int)> get = [&](int id) -> const Vec3& {
+    if (!known[id]) {
+      const auto& src = forest_.sources(id);
+      assert(!src.empty());
+      Vec3 v = Vec3::Zero();
+      for (int s : src) v += get(s);
+      value[id] = v / static_cast<double>(src.size());
+      known[id] = 1;
+    }
+    return value[id];
+  };
+  VecX out(3 * active_.node_id.size());
+  for (size_t i = 0; i < active_.node_id.size(); ++i) out.segment<3>(3 * i) = get(active_.node_id[i]);
+  return out;
+}
+
+std::vector<int> MeshAdaptation::elementsPerLevel() const {
+  std::vector<int> n(settings_.max_level + 1, 0);
+  for (int l : active_.level)
+    if (l >= 0 && l < static_cast<int>(n.size())) ++n[l];
+  return n;
+}
+
+}  // namespace needle_sim
