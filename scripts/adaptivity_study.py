@@ -3,7 +3,8 @@
 32x16x16 meshes against adaptive meshes from 8x4x4 (Bui et al., Section 3.1). The error of a
 run is the largest difference of any probe displacement (probes 1..7 on the path, 1A..1E
 on the radial line) at any step from the 32x16x16 run, relative to the largest probe
-displacement of that run.
+displacement of that run; also its time mean, and separately the puncture instant (a
+one-step transient that an adaptive mesh resolves one step late).
 
 Sample run (about 4 minutes on the 2-core machine, most of it the 32x16x16 reference):
 
@@ -36,7 +37,7 @@ RUNS = [
     ("uniform 32x16x16", "phantom_insertion_32x16x16.yaml", []),
     ("adaptive theta 0.3, 1 level", "phantom_insertion_adaptive.yaml", ["adaptivity.max_level=1"]),
     ("adaptive theta 0.3, 2 levels", "phantom_insertion_adaptive.yaml", []),
-    ("adaptive theta 0.1, 2 levels", "phantom_insertion_adaptive.yaml", ["adaptivity.theta=0.1"]),
+    ("adaptive theta 0.1, 2 levels", "phantom_insertion_adaptive.yaml", ["adaptivity.theta=0.1", "adaptivity.coarsen.theta_coarsen=0.02"]),
     ("adaptive theta 0.3, 2 levels, no coarsening", "phantom_insertion_adaptive.yaml",
      ["adaptivity.coarsen.enabled=false"]),
 ]
@@ -86,16 +87,14 @@ def main():
 
     _, ref_rows, ref = results[REFERENCE]
     umax = max(math.sqrt(sum(c * c for c in u)) for s in ref.values() for u in s)
+    # The puncture is a one-step transient: reported separately (steps within 10 of the
+    # first contact), since an adaptive mesh follows such an event one step later.
+    contact = next(i for i, r in enumerate(ref_rows) if r.get("needle_state", "approaching") != "approaching")
     table = []
     for name, _, _ in RUNS:
         summary, rows, series = results[name]
-        err_path = err_radial = 0.0
-        for p, s in series.items():
-            e = max(math.dist(a, b) for a, b in zip(s, ref[p])) / umax
-            if "A" <= p[-1] <= "E":
-                err_radial = max(err_radial, e)
-            else:
-                err_path = max(err_path, e)
+        per_step = [max(math.dist(s[k], ref[p][k]) for p, s in series.items()) / umax for k in range(len(ref_rows))]
+        steady = [e for k, e in enumerate(per_step) if abs(k - contact) > 10]
         ad = summary.get("adaptivity", {})
         dofs = [int(r["dofs"]) for r in rows]
         table.append({
@@ -106,8 +105,9 @@ def main():
             "step_median_ms": summary["step_ms"]["median"],
             "step_max_ms": summary["step_ms"]["max"],
             "adapt_share": ad.get("adapt_share_of_run", 0.0),
-            "error_path": err_path,
-            "error_radial": err_radial,
+            "error_max": max(steady),
+            "error_mean": sum(per_step) / len(per_step),
+            "error_at_puncture": max(per_step),
         })
     ref_wall = next(t["wall_s"] for t in table if t["run"] == REFERENCE)
     for t in table:
@@ -119,25 +119,26 @@ def main():
         w.writeheader()
         w.writerows(table)
     with open(os.path.join(args.out, "study.md"), "w") as f:
-        f.write("| run | tissue DOFs max | DOFs median | wall s | speed-up vs 32x16x16 | step median ms | "
-                "step max ms | adaptivity share | probe error path | probe error radial |\n")
+        f.write("| run | tissue DOFs max | wall s | speed-up vs 32x16x16 | step median ms | step max ms | "
+                "adaptivity share | probe error max | probe error time-mean | probe error at puncture |\n")
         f.write("|---|---|---|---|---|---|---|---|---|---|\n")
         for t in table:
-            f.write(f"| {t['run']} | {t['tissue_dofs_max']:,} | {t['dofs_median']:,} | {t['wall_s']:.2f} | "
+            f.write(f"| {t['run']} | {t['tissue_dofs_max']:,} | {t['wall_s']:.2f} | "
                     f"{t['speedup_vs_32']:.1f}x | {t['step_median_ms']:.3f} | {t['step_max_ms']:.1f} | "
-                    f"{100 * t['adapt_share']:.1f} % | {t['error_path']:.2e} | {t['error_radial']:.2e} |\n")
+                    f"{100 * t['adapt_share']:.1f} % | {t['error_max']:.3f} | {t['error_mean']:.4f} | "
+                    f"{t['error_at_puncture']:.3f} |\n")
     print(open(os.path.join(args.out, "study.md")).read())
 
     fig, ax = plt.subplots(figsize=(7, 5))
     for t in table:
         if t["run"] == REFERENCE:
             continue
-        err = max(t["error_path"], t["error_radial"])
+        err = t["error_max"]
         marker = "s" if t["run"].startswith("uniform") else "o"
         ax.loglog(t["wall_s"], err, marker, markersize=8, label=f"{t['run']} ({t['tissue_dofs_max']:,} DOFs)")
     ax.axvline(ref_wall, color="gray", linestyle="--", label=f"{REFERENCE} run time ({ref_wall:.0f} s)")
     ax.set_xlabel("run time [s] (5,000 steps)")
-    ax.set_ylabel("max probe error vs 32x16x16 (relative)")
+    ax.set_ylabel("max probe error vs 32x16x16 (relative, outside the puncture step)")
     ax.set_title("Phantom insertion: run time against probe error")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
