@@ -5,4 +5,7 @@ source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 install_missing
 build
 cd "$BUILD"
+# ROS's Python tools (rostest, hztest) start with `#!/usr/bin/env python3`: Debian's
+# interpreter must come first, not a pyenv one that has no rospy.
+export PATH="/usr/bin:$PATH"
 ctest --output-on-failure "$@"

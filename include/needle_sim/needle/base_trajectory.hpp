@@ -4,6 +4,7 @@
 // (direction); held constant before the first and after the last keyframe. The ROS node
 // appends commands through add() as they arrive; scene files give them up front.
 #include <Eigen/Geometry>
+#include <limits>
 #include <vector>
 
 #include "needle_sim/core/types.hpp"
@@ -24,12 +25,18 @@ class BaseTrajectory {
 
   // Appends a keyframe; t must exceed the last keyframe's time (throws std::invalid_argument).
   void add(double t, const BasePose& pose);
+  // Replaces the pose of the last keyframe (a later command for the same instant).
+  void replaceLast(const BasePose& pose) {
+    if (!keys_.empty()) keys_.back().pose = pose;
+  }
   // Commanded pose at time t.
   BasePose pose(double t) const;
   // Rotation carrying the rest base frame to the commanded one: the minimal rotation from
   // the rest axis to the commanded axis, after a roll about the rest axis.
   Eigen::Quaterniond orientation(const BasePose& p) const;
   const BasePose& rest() const { return rest_; }
+  // Time of the last keyframe (-infinity when there is none).
+  double lastTime() const { return keys_.empty() ? -std::numeric_limits<double>::infinity() : keys_.back().t; }
   size_t size() const { return keys_.size(); }
 
  private:

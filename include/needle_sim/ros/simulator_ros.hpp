@@ -1,0 +1,113 @@
+#pragma once
+// The ROS face of needle_sim: one class built from (nh, private_nh), shared by the node
+// (needle_sim_node) and the nodelet (needle_sim/SimulatorNodelet). No physics here: it
+// loads a scene, turns validated commands into keyframes of the needles' base trajectories,
+// steps the core Simulation on a worker thread paced by a ros::Timer (which follows /clock
+// under /use_sim_time), and publishes what the core computes.
+//
+// Parameters (private):
+//   ~scene (string, required)      scene YAML file
+//   ~set (string list)             key.path=value overrides, as `needle_sim run --set`
+//   ~tissue_frame ("tissue")       frame of every output
+//   ~command_source ("topic")      topic: needle base poses from <needle>/command_pose;
+//                                  scene: follow the scene's own motion keyframes (demo)
+//   ~max_speed (0.05 m/s)          faster commands are clamped to it (warning, counted); a
+//                                  command is reached over the interval since the previous
+//                                  one (header stamps; at least one step)
+//   ~command_timeout (0.5 s)       commands older than this (header stamp) are rejected
+//   ~workspace_margin (0.2 m)      commands farther than this from the tissue's box are rejected
+//   ~as_fast_as_possible (false)   step back to back instead of at the scene's dt
+// Topics: subscribes <needle>/command_pose (geometry_msgs/PoseStamped; the needle axis is
+// the pose's x axis); publishes status (needle_sim/SimStatus), <needle>/wrench
+// (geometry_msgs/WrenchStamped: the force and moment the needle exerts on its holder, what a
+// force/torque sensor at the base reads; it opposes the insertion while the tissue resists),
+// <needle>/path (nav_msgs/Path: the centre line), tissue/deformation (sensor_msgs/
+// PointCloud2 with x y z dx dy dz von_mises eta, built only while subscribed).
+// Services: reset (std_srvs/Trigger): back to the scene's initial state.
+#include <ros/ros.h>
+
+#include <atomic>
+#include <condition_variable>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <geometry_msgs/PoseStamped.h>
+#include <std_srvs/Trigger.h>
+
+#include "needle_sim/scene/scene.hpp"
+#include "needle_sim/sim/simulation.hpp"
+
+namespace needle_sim {
+
+// Command validation, kept free of ROS so that it can be tested on its own.
+struct CommandCheck {
+  enum class Verdict { Accept, Clamp, Reject } verdict = Verdict::Accept;
+  std::string reason;
+  BasePose pose;
+};
+// A base pose command (position, orientation as a quaternion whose x axis is the needle
+// axis) checked against the last commanded pose `last`, the time dt since it, the speed limit, and
+// the workspace box [lo - margin, hi + margin]. rest is the scene's base pose: the command
+// q = FromTwoVectors(x, rest axis) * AngleAxis(rest roll, x) is the rest orientation, and
+// roll is measured about the commanded axis from the smallest rotation that carries the
+// rest axis onto it (BaseTrajectory's convention).
+CommandCheck checkCommand(const Vec3& position, const Eigen::Quaterniond& orientation, const BasePose& last,
+                          const BasePose& rest, double dt, double max_speed, const Vec3& lo, const Vec3& hi,
+                          double margin);
+
+class SimulatorRos {
+ public:
+  // Throws InputError (scene file, key, problem) when the scene cannot be loaded.
+  SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh);
+  ~SimulatorRos();
+
+ private:
+  struct Command {
+    int needle;
+    BasePose pose;
+    double interval;  // since the needle's previous command [s]: the base gets this long to get there
+  };
+  void load();
+  void onTimer(const ros::TimerEvent&);
+  void onCommand(int needle, const geometry_msgs::PoseStamped::ConstPtr& msg);
+  bool onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
+  void worker();
+  void stepOnce();  // with sim_mutex_ held
+  void publish(const StepStats& s, double ms);
+
+  ros::NodeHandle nh_, pnh_;
+  std::string scene_file_, frame_, command_source_;
+  std::vector<std::string> overrides_;
+  double max_speed_ = 0.05, command_timeout_ = 0.5, workspace_margin_ = 0.2;
+  bool as_fast_ = false;
+  Scene scene_;
+  Vec3 lo_ = Vec3::Zero(), hi_ = Vec3::Zero();
+
+  std::mutex sim_mutex_;  // guards sim_, last_pose_, counters below
+  std::unique_ptr<Simulation> sim_;
+  std::vector<BasePose> last_pose_;  // last accepted command per needle (queue_mutex_)
+  std::vector<ros::Time> last_stamp_;
+  std::string failure_;
+  double step_ms_max_ = 0;
+  std::deque<std::pair<ros::WallTime, double>> rtf_window_;  // (wall, sim time)
+
+  std::mutex queue_mutex_;  // guards commands_, pending_
+  std::condition_variable wake_;
+  std::vector<Command> commands_;
+  int pending_ = 0;
+  bool stop_ = false;
+  std::atomic<uint64_t> overruns_{0}, rejected_{0}, clamped_{0};
+
+  ros::Timer timer_;
+  std::vector<ros::Subscriber> command_subs_;
+  ros::Publisher status_pub_, cloud_pub_;
+  std::vector<ros::Publisher> wrench_pubs_, path_pubs_;
+  ros::ServiceServer reset_srv_;
+  std::thread thread_;
+};
+
+}  // namespace needle_sim

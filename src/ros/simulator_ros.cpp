@@ -1,0 +1,331 @@
+#include "needle_sim/ros/simulator_ros.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+#include <geometry_msgs/WrenchStamped.h>
+#include <nav_msgs/Path.h>
+#include <sensor_msgs/PointCloud2.h>
+#include <sensor_msgs/point_cloud2_iterator.h>
+
+#include "needle_sim/core/error.hpp"
+#include <needle_sim/SimStatus.h>
+#include "needle_sim/scene/scene_loader.hpp"
+
+namespace needle_sim {
+
+CommandCheck checkCommand(const Vec3& position, const Eigen::Quaterniond& orientation, const BasePose& last,
+                          const BasePose& rest, double dt, double max_speed, const Vec3& lo, const Vec3& hi,
+                          double margin) {
+  CommandCheck c;
+  if (!position.allFinite() || !orientation.coeffs().allFinite()) {
+    c.verdict = CommandCheck::Verdict::Reject;
+    c.reason = "non-finite position or orientation";
+    return c;
+  }
+  if (orientation.norm() < 1e-6) {
+    c.verdict = CommandCheck::Verdict::Reject;
+    c.reason = "zero quaternion";
+    return c;
+  }
+  if (((position - (lo - Vec3::Constant(margin))).array() < 0).any() ||
+      ((position - (hi + Vec3::Constant(margin))).array() > 0).any()) {
+    c.verdict = CommandCheck::Verdict::Reject;
+    c.reason = "position outside the workspace (the tissue's box plus ~workspace_margin)";
+    return c;
+  }
+  const Eigen::Quaterniond q = orientation.normalized();
+  const Vec3 d = q * Vec3::UnitX();
+  // Roll: the twist about the axis of q relative to the frame that carries x to the rest
+  // axis and then, by the smallest rotation, to d (BaseTrajectory's convention).
+  const Eigen::Quaterniond ref =
+      Eigen::Quaterniond::FromTwoVectors(rest.direction, d) * Eigen::Quaterniond::FromTwoVectors(Vec3::UnitX(), rest.direction);
+  const Eigen::Quaterniond twist = ref.conjugate() * q;
+  c.pose.position = position;
+  c.pose.direction = d.normalized();
+  c.pose.roll = rest.roll + 2 * std::atan2(twist.x(), twist.w());
+  const double step = (position - last.position).norm(), limit = max_speed * dt;
+  if (step > limit) {
+    c.verdict = CommandCheck::Verdict::Clamp;
+    c.reason = "faster than ~max_speed";
+    c.pose.position = last.position + (position - last.position) * (limit / step);
+  }
+  return c;
+}
+
+SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
+  if (!pnh_.getParam("scene", scene_file_))
+    throw InputError("", "~scene", "missing private parameter: the scene YAML file");
+  pnh_.param("set", overrides_, std::vector<std::string>{});
+  pnh_.param<std::string>("tissue_frame", frame_, "tissue");
+  pnh_.param<std::string>("command_source", command_source_, "topic");
+  pnh_.param("max_speed", max_speed_, 0.05);
+  pnh_.param("command_timeout", command_timeout_, 0.5);
+  pnh_.param("workspace_margin", workspace_margin_, 0.2);
+  pnh_.param("as_fast_as_possible", as_fast_, false);
+  if (command_source_ != "topic" && command_source_ != "scene")
+    throw InputError("", "~command_source", "must be topic or scene, got '" + command_source_ + "'");
+  if (!(max_speed_ > 0)) throw InputError("", "~max_speed", "must be > 0");
+  scene_ = loadScene(scene_file_, overrides_);
+  if (command_source_ == "topic")
+    for (auto& n : scene_.needles) n.motion.clear();  // the base follows the commands only
+  load();
+
+  status_pub_ = nh_.advertise<needle_sim::SimStatus>("status", 10);
+  cloud_pub_ = nh_.advertise<sensor_msgs::PointCloud2>("tissue/deformation", 2);
+  for (int i = 0; i < static_cast<int>(scene_.needles.size()); ++i) {
+    const std::string& name = scene_.needles[i].name;
+    wrench_pubs_.push_back(nh_.advertise<geometry_msgs::WrenchStamped>(name + "/wrench", 10));
+    path_pubs_.push_back(nh_.advertise<nav_msgs::Path>(name + "/path", 10));
+    if (command_source_ == "topic")
+      command_subs_.push_back(nh_.subscribe<geometry_msgs::PoseStamped>(
+          name + "/command_pose", 100, [this, i](const geometry_msgs::PoseStamped::ConstPtr& m) { onCommand(i, m); }));
+  }
+  reset_srv_ = nh_.advertiseService("reset", &SimulatorRos::onReset, this);
+  thread_ = std::thread(&SimulatorRos::worker, this);
+  if (!as_fast_) timer_ = nh_.createTimer(ros::Duration(scene_.dt), &SimulatorRos::onTimer, this);
+  ROS_INFO("needle_sim: scene '%s' (%s), %d DOFs, dt %g s, commands from %s", scene_.name.c_str(), scene_file_.c_str(),
+           sim_->numDofs(), scene_.dt, command_source_.c_str());
+}
+
+SimulatorRos::~SimulatorRos() {
+  timer_.stop();
+  {
+    std::lock_guard<std::mutex> lk(queue_mutex_);
+    stop_ = true;
+  }
+  wake_.notify_all();
+  if (thread_.joinable()) thread_.join();
+}
+
+void SimulatorRos::load() {
+  sim_ = std::make_unique<Simulation>(scene_);
+  {
+    std::lock_guard<std::mutex> lk(queue_mutex_);
+    last_pose_.clear();
+    for (const auto& n : scene_.needles) last_pose_.push_back({n.base_position, n.base_direction, n.base_roll});
+    last_stamp_.assign(scene_.needles.size(), ros::Time(0));
+    commands_.clear();
+  }
+  failure_.clear();
+  step_ms_max_ = 0;
+  rtf_window_.clear();
+  if (sim_->hasTissue()) {
+    lo_ = sim_->tissue().mesh().boundsMin();
+    hi_ = sim_->tissue().mesh().boundsMax();
+  } else {
+    lo_ = hi_ = scene_.needles.empty() ? Vec3::Zero() : scene_.needles[0].base_position;
+  }
+}
+
+void SimulatorRos::onTimer(const ros::TimerEvent&) {
+  {
+    std::lock_guard<std::mutex> lk(queue_mutex_);
+    if (pending_ > 0) ++overruns_;  // the previous period's step has not started yet
+    pending_ = std::min(pending_ + 1, 1000);
+  }
+  wake_.notify_one();
+}
+
+void SimulatorRos::onCommand(int needle, const geometry_msgs::PoseStamped::ConstPtr& m) {
+  const Vec3 p(m->pose.position.x, m->pose.position.y, m->pose.position.z);
+  const Eigen::Quaterniond q(m->pose.orientation.w, m->pose.orientation.x, m->pose.orientation.y, m->pose.orientation.z);
+  const std::string& name = scene_.needles[needle].name;
+  if (!m->header.stamp.isZero() && (ros::Time::now() - m->header.stamp).toSec() > command_timeout_) {
+    ++rejected_;
+    ROS_WARN_THROTTLE(1.0, "needle_sim: %s/command_pose rejected: stale (older than ~command_timeout = %g s)",
+                      name.c_str(), command_timeout_);
+    return;
+  }
+  std::lock_guard<std::mutex> lk(queue_mutex_);
+  const auto& nsc = scene_.needles[needle];
+  double interval = scene_.dt;
+  if (!m->header.stamp.isZero() && !last_stamp_[needle].isZero())
+    interval = std::clamp((m->header.stamp - last_stamp_[needle]).toSec(), scene_.dt, 1.0);
+  const CommandCheck c = checkCommand(p, q, last_pose_[needle], {nsc.base_position, nsc.base_direction, nsc.base_roll}, interval,
+                                      max_speed_, lo_, hi_, workspace_margin_);
+  if (c.verdict == CommandCheck::Verdict::Reject) {
+    ++rejected_;
+    ROS_WARN_THROTTLE(1.0, "needle_sim: %s/command_pose rejected: %s", name.c_str(), c.reason.c_str());
+    return;
+  }
+  if (c.verdict == CommandCheck::Verdict::Clamp) {
+    ++clamped_;
+    ROS_WARN_THROTTLE(1.0, "needle_sim: %s/command_pose clamped: %s (%g m/s)", name.c_str(), c.reason.c_str(),
+                      max_speed_);
+  }
+  last_pose_[needle] = c.pose;
+  last_stamp_[needle] = m->header.stamp;
+  commands_.push_back({needle, c.pose, interval});
+}
+
+bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  std::lock_guard<std::mutex> lk(sim_mutex_);
+  try {
+    load();
+  } catch (const std::exception& e) {
+    res.success = false;
+    res.message = e.what();
+    return true;
+  }
+  overruns_ = rejected_ = clamped_ = 0;
+  res.success = true;
+  res.message = "reset to the initial state of scene '" + scene_.name + "'";
+  return true;
+}
+
+void SimulatorRos::worker() {
+  for (;;) {
+    std::vector<Command> cmds;
+    {
+      std::unique_lock<std::mutex> lk(queue_mutex_);
+      wake_.wait(lk, [&] { return stop_ || pending_ > 0 || as_fast_; });
+      if (stop_) return;
+      if (pending_ > 0) --pending_;
+      cmds.swap(commands_);
+    }
+    std::lock_guard<std::mutex> lk(sim_mutex_);
+    // A command becomes a keyframe one command interval after the needle's previous one
+    // (so that a stream of poses is followed smoothly), and never earlier than the end of
+    // this step.
+    for (const auto& c : cmds) {
+      auto& traj = sim_->needle(c.needle).trajectory();
+      const double t = std::max(sim_->time() + scene_.dt, traj.lastTime() + c.interval);
+      try {
+        traj.add(t, c.pose);
+      } catch (const std::invalid_argument&) {
+        // a second command for the same step: the later one wins
+        traj.replaceLast(c.pose);
+      }
+    }
+    stepOnce();
+  }
+}
+
+void SimulatorRos::stepOnce() {
+  StepStats s;
+  double ms = 0;
+  if (failure_.empty()) {
+    const auto t0 = ros::WallTime::now();
+    try {
+      s = sim_->step();
+    } catch (const NumericalError& e) {
+      failure_ = e.what();
+      ROS_ERROR("needle_sim: numerical failure, stepping stopped until reset: %s", e.what());
+    }
+    ms = (ros::WallTime::now() - t0).toSec() * 1e3;
+    step_ms_max_ = std::max(step_ms_max_, ms);
+  }
+  publish(s, ms);
+}
+
+void SimulatorRos::publish(const StepStats& s, double ms) {
+  const ros::Time now = ros::Time::now();
+  const ros::WallTime wall = ros::WallTime::now();
+  rtf_window_.emplace_back(wall, sim_->time());
+  while (rtf_window_.size() > 2 && (wall - rtf_window_.front().first).toSec() > 1.0) rtf_window_.pop_front();
+
+  needle_sim::SimStatus st;
+  st.header.stamp = now;
+  st.header.frame_id = frame_;
+  st.scene = scene_.name;
+  st.state = failure_.empty() ? "running" : "failed";
+  st.message = failure_;
+  st.step = sim_->stepIndex();
+  st.sim_time = sim_->time();
+  st.dofs = sim_->numDofs();
+  st.tissue_elements = sim_->hasTissue() ? sim_->tissue().mesh().numElements() : 0;
+  st.step_ms = ms;
+  st.step_ms_max = step_ms_max_;
+  const double dw = (rtf_window_.back().first - rtf_window_.front().first).toSec();
+  st.real_time_factor = dw > 0 ? (rtf_window_.back().second - rtf_window_.front().second) / dw : 0.0;
+  st.overruns = overruns_;
+  st.rejected_commands = rejected_;
+  st.clamped_commands = clamped_;
+  st.linear_iterations = s.linear_iterations;
+  st.constraint_points = s.constraint_points;
+  for (int i = 0; i < sim_->numNeedles(); ++i) {
+    st.needles.push_back(sim_->needle(i).name());
+    st.insertion_states.push_back(sim_->interaction() ? toString(sim_->interaction()->state(i)) : "free");
+  }
+  if (const ErrorEstimate* e = sim_->lastEstimate()) st.eta_relative = e->energy > 0 ? e->global / e->energy : 0.0;
+  if (failure_.empty()) {
+    for (int i = 0; i < sim_->numProbes(); ++i) {
+      needle_sim::Probe p;
+      p.name = sim_->probeName(i);
+      const Vec3& r = scene_.probes[i].point;
+      const Vec3 u = sim_->probeDisplacement(i);
+      p.rest.x = r.x(), p.rest.y = r.y(), p.rest.z = r.z();
+      p.displacement.x = u.x(), p.displacement.y = u.y(), p.displacement.z = u.z();
+      st.probes.push_back(p);
+    }
+  }
+  status_pub_.publish(st);
+  if (!failure_.empty()) return;  // never publish a state that failed
+
+  for (int i = 0; i < sim_->numNeedles(); ++i) {
+    const NeedleBody& nd = sim_->needle(i);
+    geometry_msgs::WrenchStamped w;
+    w.header = st.header;
+    const Vec3 f = -nd.baseForce(), m = -nd.baseMoment();  // on the holder
+    w.wrench.force.x = f.x(), w.wrench.force.y = f.y(), w.wrench.force.z = f.z();
+    w.wrench.torque.x = m.x(), w.wrench.torque.y = m.y(), w.wrench.torque.z = m.z();
+    wrench_pubs_[i].publish(w);
+    if (path_pubs_[i].getNumSubscribers() > 0) {
+      nav_msgs::Path path;
+      path.header = st.header;
+      for (int k = 0; k < nd.beam().numNodes(); ++k) {
+        geometry_msgs::PoseStamped ps;
+        ps.header = st.header;
+        const Vec3& p = nd.state().p[k];
+        const Eigen::Quaterniond& q = nd.state().q[k];
+        ps.pose.position.x = p.x(), ps.pose.position.y = p.y(), ps.pose.position.z = p.z();
+        ps.pose.orientation.w = q.w(), ps.pose.orientation.x = q.x(), ps.pose.orientation.y = q.y(),
+        ps.pose.orientation.z = q.z();
+        path.poses.push_back(ps);
+      }
+      path_pubs_[i].publish(path);
+    }
+  }
+
+  if (sim_->hasTissue() && cloud_pub_.getNumSubscribers() > 0) {
+    // Nodal values: displacement, and the average over the node's elements of the centroid
+    // von Mises stress and of the SPR indicator eta.
+    const TissueBody& t = sim_->tissue();
+    const HexMesh& mesh = t.mesh();
+    const ErrorEstimate& est = sim_->errorEstimate();
+    std::vector<float> vm(mesh.numNodes(), 0.f), eta(mesh.numNodes(), 0.f);
+    std::vector<int> cnt(mesh.numNodes(), 0);
+    for (int e = 0; e < mesh.numElements(); ++e) {
+      const double v = SprEstimator::vonMises(est.centroid_stress[e]);
+      for (int a : mesh.element(e)) {
+        vm[a] += static_cast<float>(v);
+        eta[a] += static_cast<float>(est.eta[e]);
+        ++cnt[a];
+      }
+    }
+    sensor_msgs::PointCloud2 cloud;
+    cloud.header = st.header;
+    sensor_msgs::PointCloud2Modifier mod(cloud);
+    mod.setPointCloud2Fields(8, "x", 1, sensor_msgs::PointField::FLOAT32, "y", 1, sensor_msgs::PointField::FLOAT32,
+                             "z", 1, sensor_msgs::PointField::FLOAT32, "dx", 1, sensor_msgs::PointField::FLOAT32,
+                             "dy", 1, sensor_msgs::PointField::FLOAT32, "dz", 1, sensor_msgs::PointField::FLOAT32,
+                             "von_mises", 1, sensor_msgs::PointField::FLOAT32, "eta", 1,
+                             sensor_msgs::PointField::FLOAT32);
+    mod.resize(mesh.numNodes());
+    sensor_msgs::PointCloud2Iterator<float> it(cloud, "x");
+    const VecX& x = t.positions();
+    const VecX u = t.displacements();
+    for (int n = 0; n < mesh.numNodes(); ++n, ++it) {
+      for (int d = 0; d < 3; ++d) {
+        it[d] = static_cast<float>(x[3 * n + d]);
+        it[3 + d] = static_cast<float>(u[3 * n + d]);
+      }
+      it[6] = cnt[n] ? vm[n] / cnt[n] : 0.f;
+      it[7] = cnt[n] ? eta[n] / cnt[n] : 0.f;
+    }
+    cloud_pub_.publish(cloud);
+  }
+}
+
+}  // namespace needle_sim

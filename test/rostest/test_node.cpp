@@ -1,0 +1,174 @@
+// rostest behaviour checks of needle_sim_node (launched by node.test with the phantom
+// insertion scene, commands from needle/command_pose): commanded insertion moves the tip
+// and punctures, the wrench opposes the insertion, bad commands are rejected while the node
+// keeps running, the deformation cloud is well formed, reset restores the initial state.
+#include <gtest/gtest.h>
+#include <ros/ros.h>
+
+#include <atomic>
+#include <cmath>
+#include <mutex>
+
+#include <geometry_msgs/PoseStamped.h>
+#include <geometry_msgs/WrenchStamped.h>
+#include <nav_msgs/Path.h>
+#include <needle_sim/SimStatus.h>
+#include <sensor_msgs/PointCloud2.h>
+#include <sensor_msgs/point_cloud2_iterator.h>
+#include <std_srvs/Trigger.h>
+
+namespace {
+
+struct Listener {
+  std::mutex m;
+  needle_sim::SimStatus status;
+  bool have_status = false;
+  nav_msgs::Path path;
+  bool have_path = false;
+  std::vector<double> wrench_x;
+  sensor_msgs::PointCloud2 cloud;
+  bool have_cloud = false;
+
+  double tipX() {
+    std::lock_guard<std::mutex> lk(m);
+    return path.poses.empty() ? std::nan("") : path.poses.back().pose.position.x;
+  }
+  needle_sim::SimStatus lastStatus() {
+    std::lock_guard<std::mutex> lk(m);
+    return status;
+  }
+};
+
+template <class F>
+bool waitFor(F cond, double seconds) {
+  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(seconds);
+  while (ros::ok() && ros::WallTime::now() < end) {
+    if (cond()) return true;
+    ros::WallDuration(0.01).sleep();
+  }
+  return cond();
+}
+
+const double kBaseX = -0.035, kY = 0.01, kZ = 0.01;  // phantom_insertion_8x4x4.yaml
+
+geometry_msgs::PoseStamped pose(double x, double y = kY, double z = kZ) {
+  geometry_msgs::PoseStamped p;
+  p.header.stamp = ros::Time::now();
+  p.header.frame_id = "tissue";
+  p.pose.position.x = x;
+  p.pose.position.y = y;
+  p.pose.position.z = z;
+  p.pose.orientation.w = 1;  // x axis = the scene's rest axis
+  return p;
+}
+
+}  // namespace
+
+TEST(NeedleSimNode, CommandedInsertionRejectsBadCommandsAndResets) {
+  ros::NodeHandle nh;
+  Listener L;
+  auto s1 = nh.subscribe<needle_sim::SimStatus>("status", 100, [&](const needle_sim::SimStatus::ConstPtr& m) {
+    std::lock_guard<std::mutex> lk(L.m);
+    L.status = *m;
+    L.have_status = true;
+  });
+  auto s2 = nh.subscribe<nav_msgs::Path>("needle/path", 10, [&](const nav_msgs::Path::ConstPtr& m) {
+    std::lock_guard<std::mutex> lk(L.m);
+    L.path = *m;
+    L.have_path = true;
+  });
+  auto s3 = nh.subscribe<geometry_msgs::WrenchStamped>("needle/wrench", 1000, [&](const geometry_msgs::WrenchStamped::ConstPtr& m) {
+    std::lock_guard<std::mutex> lk(L.m);
+    L.wrench_x.push_back(m->wrench.force.x);
+  });
+  ros::Publisher cmd = nh.advertise<geometry_msgs::PoseStamped>("needle/command_pose", 100);
+  ros::AsyncSpinner spinner(2);
+  spinner.start();
+
+  ASSERT_TRUE(waitFor([&] { std::lock_guard<std::mutex> lk(L.m); return L.have_status && L.have_path; }, 30.0));
+  ASSERT_TRUE(waitFor([&] { return cmd.getNumSubscribers() > 0; }, 10.0));
+  const double tip0 = L.tipX();
+  EXPECT_NEAR(tip0, -0.003, 1e-6);
+
+  // 1. Insertion at 1 cm/s for 1.5 s (puncture after 0.3 s), commands at 200 Hz.
+  const ros::WallTime t0 = ros::WallTime::now();
+  size_t wrench_mark = 0;
+  for (;;) {
+    const double t = (ros::WallTime::now() - t0).toSec();
+    if (t > 1.5) break;
+    if (t > 1.0 && wrench_mark == 0) {
+      std::lock_guard<std::mutex> lk(L.m);
+      wrench_mark = L.wrench_x.size();
+    }
+    cmd.publish(pose(kBaseX + 0.01 * t));
+    ros::WallDuration(0.005).sleep();
+  }
+  ros::WallDuration(0.3).sleep();
+  const double tip1 = L.tipX();
+  EXPECT_GT(tip1 - tip0, 0.010) << "tip advanced " << tip1 - tip0;
+  EXPECT_LT(tip1 - tip0, 0.0155);
+  needle_sim::SimStatus st = L.lastStatus();
+  ASSERT_EQ(st.insertion_states.size(), 1u);
+  EXPECT_TRUE(st.insertion_states[0] == "inserted" || st.insertion_states[0] == "punctured") << st.insertion_states[0];
+  EXPECT_GT(st.constraint_points, 0u);
+  EXPECT_EQ(st.state, "running");
+  {
+    std::lock_guard<std::mutex> lk(L.m);
+    ASSERT_GT(L.wrench_x.size(), wrench_mark + 10);
+    double mean = 0;
+    for (size_t k = wrench_mark; k < L.wrench_x.size(); ++k) mean += L.wrench_x[k];
+    mean /= L.wrench_x.size() - wrench_mark;
+    EXPECT_LT(mean, 0.0) << "the needle pushes back on its holder while it cuts its way in";
+  }
+
+  // 2. Bad commands: NaN, and a 1 m jump out of the workspace. Rejected; the node goes on.
+  const auto before = L.lastStatus();
+  auto bad = pose(kBaseX + 0.015);
+  bad.pose.position.y = std::nan("");
+  cmd.publish(bad);
+  cmd.publish(pose(kBaseX + 1.0));
+  ASSERT_TRUE(waitFor([&] { return L.lastStatus().rejected_commands >= before.rejected_commands + 2; }, 5.0));
+  ASSERT_TRUE(waitFor([&] { return L.lastStatus().step > before.step + 100; }, 5.0));
+  EXPECT_EQ(L.lastStatus().state, "running");
+  EXPECT_NEAR(L.tipX(), tip1, 1e-3);
+
+  // 3. The deformation cloud, built once someone listens.
+  auto s4 = nh.subscribe<sensor_msgs::PointCloud2>("tissue/deformation", 2, [&](const sensor_msgs::PointCloud2::ConstPtr& m) {
+    std::lock_guard<std::mutex> lk(L.m);
+    L.cloud = *m;
+    L.have_cloud = true;
+  });
+  ASSERT_TRUE(waitFor([&] { std::lock_guard<std::mutex> lk(L.m); return L.have_cloud; }, 10.0));
+  {
+    std::lock_guard<std::mutex> lk(L.m);
+    EXPECT_EQ(L.cloud.width * L.cloud.height, 9u * 5u * 5u);  // nodes of the 8x4x4 grid
+    ASSERT_EQ(L.cloud.fields.size(), 8u);
+    EXPECT_EQ(L.cloud.fields[3].name, "dx");
+    EXPECT_EQ(L.cloud.fields[7].name, "eta");
+    EXPECT_EQ(L.cloud.header.frame_id, "tissue");
+    double umax = 0;
+    bool finite = true;
+    for (sensor_msgs::PointCloud2ConstIterator<float> it(L.cloud, "x"); it != it.end(); ++it) {
+      for (int k = 0; k < 8; ++k) finite = finite && std::isfinite(it[k]);
+      umax = std::max(umax, std::sqrt(double(it[3]) * it[3] + double(it[4]) * it[4] + double(it[5]) * it[5]));
+    }
+    EXPECT_TRUE(finite);
+    EXPECT_GT(umax, 1e-8);
+  }
+  s4.shutdown();
+
+  // 4. Reset: the initial state again.
+  std_srvs::Trigger srv;
+  ASSERT_TRUE(ros::service::waitForService("reset", 5000));
+  ASSERT_TRUE(ros::service::call("reset", srv));
+  EXPECT_TRUE(srv.response.success) << srv.response.message;
+  ASSERT_TRUE(waitFor([&] { return L.lastStatus().rejected_commands == 0 && L.lastStatus().step < 500; }, 5.0));
+  ASSERT_TRUE(waitFor([&] { return std::abs(L.tipX() - tip0) < 1e-9; }, 5.0)) << L.tipX();
+  EXPECT_EQ(L.lastStatus().insertion_states[0], "approaching");
+}
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  ros::init(argc, argv, "test_node");
+  return RUN_ALL_TESTS();
+}
