@@ -10,7 +10,9 @@ BUILD="${NEEDLE_SIM_BUILD_DIR:-$ROOT/build}"
 PACKAGES=(
   # build tools and ROS 1 from Debian (see DESIGN.md §5)
   cmake g++ catkin ros-core-dev rosbash libroscpp-dev ros-std-msgs ros-geometry-msgs
-  ros-sensor-msgs ros-nav-msgs ros-std-srvs libnodeletlib-dev libnodeletlib-tools
+  ros-sensor-msgs ros-nav-msgs ros-std-srvs ros-visualization-msgs libdiagnostic-updater-dev
+  python3-rospy python3-geometry-msgs python3-nav-msgs
+  libnodeletlib-dev libnodeletlib-tools
   python3-rostest librostest-dev libgtest-dev
   # core library
   libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev libcli11-dev

@@ -7,6 +7,7 @@
 #include <nav_msgs/Path.h>
 #include <sensor_msgs/PointCloud2.h>
 #include <sensor_msgs/point_cloud2_iterator.h>
+#include <visualization_msgs/MarkerArray.h>
 
 #include "needle_sim/core/error.hpp"
 #include <needle_sim/SimStatus.h>
@@ -63,6 +64,8 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   pnh_.param("command_timeout", command_timeout_, 0.5);
   pnh_.param("workspace_margin", workspace_margin_, 0.2);
   pnh_.param("as_fast_as_possible", as_fast_, false);
+  pnh_.param("display_rate", display_rate_, 30.0);
+  if (!(display_rate_ > 0)) throw InputError("", "~display_rate", "must be > 0");
   if (command_source_ != "topic" && command_source_ != "scene")
     throw InputError("", "~command_source", "must be topic or scene, got '" + command_source_ + "'");
   if (!(max_speed_ > 0)) throw InputError("", "~max_speed", "must be > 0");
@@ -73,6 +76,12 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
 
   status_pub_ = nh_.advertise<needle_sim::SimStatus>("status", 10);
   cloud_pub_ = nh_.advertise<sensor_msgs::PointCloud2>("tissue/deformation", 2);
+  surface_pub_ = nh_.advertise<visualization_msgs::Marker>("tissue/surface", 2);
+  error_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("tissue/error_markers", 2);
+  updater_ = std::make_unique<diagnostic_updater::Updater>(nh_, pnh_);
+  updater_->setHardwareID("needle_sim/" + scene_.name);
+  updater_->add("simulation", this, &SimulatorRos::diagnose);
+  diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) { updater_->update(); });
   for (int i = 0; i < static_cast<int>(scene_.needles.size()); ++i) {
     const std::string& name = scene_.needles[i].name;
     wrench_pubs_.push_back(nh_.advertise<geometry_msgs::WrenchStamped>(name + "/wrench", 10));
@@ -288,7 +297,19 @@ void SimulatorRos::publish(const StepStats& s, double ms) {
     }
   }
 
-  if (sim_->hasTissue() && cloud_pub_.getNumSubscribers() > 0) {
+  const ros::WallTime wnow = ros::WallTime::now();
+  if ((wnow - last_display_).toSec() >= 1.0 / display_rate_) {
+    last_display_ = wnow;
+    publishDisplay();
+  }
+}
+
+void SimulatorRos::publishDisplay() {
+  if (!sim_->hasTissue()) return;
+  std_msgs::Header header;
+  header.stamp = ros::Time::now();
+  header.frame_id = frame_;
+  if (cloud_pub_.getNumSubscribers() > 0) {
     // Nodal values: displacement, and the average over the node's elements of the centroid
     // von Mises stress and of the SPR indicator eta.
     const TissueBody& t = sim_->tissue();
@@ -305,7 +326,7 @@ void SimulatorRos::publish(const StepStats& s, double ms) {
       }
     }
     sensor_msgs::PointCloud2 cloud;
-    cloud.header = st.header;
+    cloud.header = header;
     sensor_msgs::PointCloud2Modifier mod(cloud);
     mod.setPointCloud2Fields(8, "x", 1, sensor_msgs::PointField::FLOAT32, "y", 1, sensor_msgs::PointField::FLOAT32,
                              "z", 1, sensor_msgs::PointField::FLOAT32, "dx", 1, sensor_msgs::PointField::FLOAT32,
@@ -326,6 +347,107 @@ void SimulatorRos::publish(const StepStats& s, double ms) {
     }
     cloud_pub_.publish(cloud);
   }
+  const bool want_surface = surface_pub_.getNumSubscribers() > 0, want_error = error_pub_.getNumSubscribers() > 0;
+  if (!want_surface && !want_error) return;
+  const TissueBody& t = sim_->tissue();
+  const HexMesh& mesh = t.mesh();
+  const VecX& x = t.positions();
+  auto colour = [](double s) {  // 0 -> blue, 0.5 -> green, 1 -> red
+    std_msgs::ColorRGBA c;
+    s = std::clamp(s, 0.0, 1.0);
+    c.r = static_cast<float>(std::clamp(2 * s - 1, 0.0, 1.0));
+    c.g = static_cast<float>(1 - std::abs(2 * s - 1));
+    c.b = static_cast<float>(std::clamp(1 - 2 * s, 0.0, 1.0));
+    c.a = 1.f;
+    return c;
+  };
+  if (want_surface) {
+    if (faces_mesh_ != &mesh || faces_elements_ != mesh.numElements()) {
+      faces_ = mesh.boundaryFaces();
+      faces_mesh_ = &mesh;
+      faces_elements_ = mesh.numElements();
+    }
+    const VecX u = t.displacements();
+    double umax = 0;
+    for (int n = 0; n < mesh.numNodes(); ++n) umax = std::max(umax, u.segment<3>(3 * n).norm());
+    visualization_msgs::Marker m;
+    m.header = header;
+    m.ns = "tissue_surface";
+    m.id = 0;
+    m.type = visualization_msgs::Marker::TRIANGLE_LIST;
+    m.action = visualization_msgs::Marker::ADD;
+    m.pose.orientation.w = 1;
+    m.scale.x = m.scale.y = m.scale.z = 1;
+    m.color.a = 1;
+    for (const auto& f : faces_)
+      for (int k : {0, 1, 2, 0, 2, 3}) {
+        const int n = f.nodes[k];
+        geometry_msgs::Point p;
+        p.x = x[3 * n], p.y = x[3 * n + 1], p.z = x[3 * n + 2];
+        m.points.push_back(p);
+        m.colors.push_back(colour(umax > 0 ? u.segment<3>(3 * n).norm() / umax : 0.0));
+      }
+    surface_pub_.publish(m);
+  }
+  if (want_error) {
+    const ErrorEstimate& est = sim_->errorEstimate();
+    const std::vector<int> level = sim_->elementLevels();
+    visualization_msgs::MarkerArray arr;
+    visualization_msgs::Marker clear;
+    clear.header = header;
+    clear.action = visualization_msgs::Marker::DELETEALL;
+    arr.markers.push_back(clear);
+    const int levels = *std::max_element(level.begin(), level.end()) + 1;
+    for (int L = 0; L < levels; ++L) {
+      visualization_msgs::Marker m;
+      m.header = header;
+      m.ns = "level_" + std::to_string(L);
+      m.id = L;
+      m.type = visualization_msgs::Marker::CUBE_LIST;
+      m.action = visualization_msgs::Marker::ADD;
+      m.pose.orientation.w = 1;
+      for (int e = 0; e < mesh.numElements(); ++e) {
+        if (level[e] != L) continue;
+        const auto X = mesh.elementCorners(e);
+        if (m.points.empty()) {  // cube size: the element's rest extent (shrunk to see through)
+          const Vec3 ext = X.colwise().maxCoeff() - X.colwise().minCoeff();
+          m.scale.x = 0.6 * ext.x(), m.scale.y = 0.6 * ext.y(), m.scale.z = 0.6 * ext.z();
+        }
+        Vec3 c = Vec3::Zero();
+        for (int a : mesh.element(e)) c += x.segment<3>(3 * a) / 8.0;
+        geometry_msgs::Point p;
+        p.x = c.x(), p.y = c.y(), p.z = c.z();
+        m.points.push_back(p);
+        std_msgs::ColorRGBA col = colour(est.max > 0 ? est.eta[e] / est.max : 0.0);
+        col.a = 0.5f;
+        m.colors.push_back(col);
+      }
+      if (!m.points.empty()) arr.markers.push_back(m);
+    }
+    error_pub_.publish(arr);
+  }
+}
+
+void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
+  std::lock_guard<std::mutex> lk(sim_mutex_);
+  const uint64_t rej = rejected_, cl = clamped_, ov = overruns_;
+  if (!failure_.empty())
+    stat.summary(diagnostic_msgs::DiagnosticStatus::ERROR, "numerical failure: " + failure_);
+  else if (rej > diag_rejected_ || cl > diag_clamped_)
+    stat.summary(diagnostic_msgs::DiagnosticStatus::WARN, "commands rejected or clamped in the last second");
+  else if (ov > diag_overruns_)
+    stat.summary(diagnostic_msgs::DiagnosticStatus::WARN, "steps overran their period in the last second");
+  else
+    stat.summary(diagnostic_msgs::DiagnosticStatus::OK, "running");
+  diag_rejected_ = rej, diag_clamped_ = cl, diag_overruns_ = ov;
+  stat.add("scene", scene_.name);
+  stat.add("step", sim_->stepIndex());
+  stat.add("sim_time", sim_->time());
+  stat.add("dofs", sim_->numDofs());
+  stat.add("step_ms_max", step_ms_max_);
+  stat.add("overruns", ov);
+  stat.add("rejected_commands", rej);
+  stat.add("clamped_commands", cl);
 }
 
 }  // namespace needle_sim

@@ -16,6 +16,8 @@
 #include <sensor_msgs/PointCloud2.h>
 #include <sensor_msgs/point_cloud2_iterator.h>
 #include <std_srvs/Trigger.h>
+#include <diagnostic_msgs/DiagnosticArray.h>
+#include <visualization_msgs/MarkerArray.h>
 
 namespace {
 
@@ -157,7 +159,53 @@ TEST(NeedleSimNode, CommandedInsertionRejectsBadCommandsAndResets) {
   }
   s4.shutdown();
 
-  // 4. Reset: the initial state again.
+  // 4. Surface and error markers: well formed, per-vertex colours, DELETEALL first.
+  visualization_msgs::Marker surface;
+  visualization_msgs::MarkerArray errors;
+  bool have_surface = false, have_errors = false;
+  auto s5 = nh.subscribe<visualization_msgs::Marker>("tissue/surface", 2, [&](const visualization_msgs::Marker::ConstPtr& m) {
+    std::lock_guard<std::mutex> lk(L.m);
+    surface = *m;
+    have_surface = true;
+  });
+  auto s6 = nh.subscribe<visualization_msgs::MarkerArray>("tissue/error_markers", 2,
+                                                          [&](const visualization_msgs::MarkerArray::ConstPtr& m) {
+                                                            std::lock_guard<std::mutex> lk(L.m);
+                                                            errors = *m;
+                                                            have_errors = true;
+                                                          });
+  ASSERT_TRUE(waitFor([&] { std::lock_guard<std::mutex> lk(L.m); return have_surface && have_errors; }, 10.0));
+  {
+    std::lock_guard<std::mutex> lk(L.m);
+    EXPECT_EQ(surface.type, visualization_msgs::Marker::TRIANGLE_LIST);
+    EXPECT_EQ(surface.points.size() % 3, 0u);
+    EXPECT_EQ(surface.points.size(), surface.colors.size());
+    EXPECT_EQ(surface.points.size(), 6u * (2 * (8 * 4) * 2 + 2 * (4 * 4)));  // 2 triangles per boundary quad
+    ASSERT_GE(errors.markers.size(), 2u);
+    EXPECT_EQ(errors.markers[0].action, visualization_msgs::Marker::DELETEALL);
+    EXPECT_EQ(errors.markers[1].ns, "level_0");
+    EXPECT_EQ(errors.markers[1].type, visualization_msgs::Marker::CUBE_LIST);
+    EXPECT_EQ(errors.markers[1].points.size(), 128u);
+    EXPECT_EQ(errors.markers[1].points.size(), errors.markers[1].colors.size());
+  }
+  s5.shutdown();
+  s6.shutdown();
+
+  // 5. Diagnostics: the rejected commands above show as a warning or the node is OK again.
+  bool have_diag = false;
+  std::string level_name;
+  auto s7 = nh.subscribe<diagnostic_msgs::DiagnosticArray>("/diagnostics", 10, [&](const diagnostic_msgs::DiagnosticArray::ConstPtr& m) {
+    std::lock_guard<std::mutex> lk(L.m);
+    for (const auto& d : m->status)
+      if (d.name.find("simulation") != std::string::npos) {
+        have_diag = true;
+        level_name = d.message;
+      }
+  });
+  ASSERT_TRUE(waitFor([&] { std::lock_guard<std::mutex> lk(L.m); return have_diag; }, 5.0));
+  s7.shutdown();
+
+  // 6. Reset: the initial state again.
   std_srvs::Trigger srv;
   ASSERT_TRUE(ros::service::waitForService("reset", 5000));
   ASSERT_TRUE(ros::service::call("reset", srv));

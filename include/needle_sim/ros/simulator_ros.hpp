@@ -17,12 +17,17 @@
 //   ~command_timeout (0.5 s)       commands older than this (header stamp) are rejected
 //   ~workspace_margin (0.2 m)      commands farther than this from the tissue's box are rejected
 //   ~as_fast_as_possible (false)   step back to back instead of at the scene's dt
+//   ~display_rate (30 Hz)          rate of the heavy outputs (cloud, surface, error markers)
 // Topics: subscribes <needle>/command_pose (geometry_msgs/PoseStamped; the needle axis is
 // the pose's x axis); publishes status (needle_sim/SimStatus), <needle>/wrench
 // (geometry_msgs/WrenchStamped: the force and moment the needle exerts on its holder, what a
 // force/torque sensor at the base reads; it opposes the insertion while the tissue resists),
 // <needle>/path (nav_msgs/Path: the centre line), tissue/deformation (sensor_msgs/
-// PointCloud2 with x y z dx dy dz von_mises eta, built only while subscribed).
+// PointCloud2 with x y z dx dy dz von_mises eta), tissue/surface (visualization_msgs/Marker
+// TRIANGLE_LIST of the deformed boundary, per-vertex colours by displacement) and
+// tissue/error_markers (visualization_msgs/MarkerArray: DELETEALL, then one CUBE_LIST per
+// refinement level coloured by eta); the heavy ones only while subscribed, at ~display_rate.
+// Diagnostics (diagnostic_updater, 1 Hz): commands rejected / clamped, overruns, failure.
 // Services: reset (std_srvs/Trigger): back to the scene's initial state.
 #include <ros/ros.h>
 
@@ -37,6 +42,7 @@
 
 #include <geometry_msgs/PoseStamped.h>
 #include <std_srvs/Trigger.h>
+#include <diagnostic_updater/diagnostic_updater.h>
 
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/simulation.hpp"
@@ -78,11 +84,19 @@ class SimulatorRos {
   void worker();
   void stepOnce();  // with sim_mutex_ held
   void publish(const StepStats& s, double ms);
+  void publishDisplay();  // cloud, surface, error markers (with sim_mutex_ held)
+  void diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat);
 
   ros::NodeHandle nh_, pnh_;
   std::string scene_file_, frame_, command_source_;
   std::vector<std::string> overrides_;
-  double max_speed_ = 0.05, command_timeout_ = 0.5, workspace_margin_ = 0.2;
+  double max_speed_ = 0.05, command_timeout_ = 0.5, workspace_margin_ = 0.2, display_rate_ = 30;
+  ros::WallTime last_display_;
+  // Boundary faces of the current tissue mesh (recomputed when the mesh changes).
+  const HexMesh* faces_mesh_ = nullptr;
+  int faces_elements_ = -1;
+  std::vector<BoundaryFace> faces_;
+  uint64_t diag_rejected_ = 0, diag_clamped_ = 0, diag_overruns_ = 0;
   bool as_fast_ = false;
   Scene scene_;
   Vec3 lo_ = Vec3::Zero(), hi_ = Vec3::Zero();
@@ -104,7 +118,9 @@ class SimulatorRos {
 
   ros::Timer timer_;
   std::vector<ros::Subscriber> command_subs_;
-  ros::Publisher status_pub_, cloud_pub_;
+  ros::Publisher status_pub_, cloud_pub_, surface_pub_, error_pub_;
+  ros::Timer diag_timer_;
+  std::unique_ptr<diagnostic_updater::Updater> updater_;
   std::vector<ros::Publisher> wrench_pubs_, path_pubs_;
   ros::ServiceServer reset_srv_;
   std::thread thread_;

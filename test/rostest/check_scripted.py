@@ -1,0 +1,48 @@
+#!/usr/bin/python3
+"""rostest: `sim.launch scripted:=true` runs a full insertion without a robot: the scripted
+publisher's commands are accepted (none rejected), the needle punctures and is inserted, the
+tip advances past 15 mm into the phantom."""
+import threading
+import unittest
+
+import rospy
+import rostest
+from nav_msgs.msg import Path
+from needle_sim.msg import SimStatus
+
+
+class ScriptedInsertion(unittest.TestCase):
+    def test_insertion_happens(self):
+        seen = set()
+        tip = {"x": float("nan"), "max": -1.0}
+        rejected = {"n": 0}
+        lock = threading.Lock()
+
+        def on_status(m):
+            with lock:
+                seen.update(m.insertion_states)
+                rejected["n"] = m.rejected_commands
+
+        def on_path(m):
+            with lock:
+                if m.poses:
+                    tip["x"] = m.poses[-1].pose.position.x
+                    tip["max"] = max(tip["max"], tip["x"])
+
+        rospy.Subscriber("status", SimStatus, on_status)
+        rospy.Subscriber("needle/path", Path, on_path)
+        deadline = rospy.Time.now() + rospy.Duration(20.0)
+        while not rospy.is_shutdown() and rospy.Time.now() < deadline:
+            with lock:
+                if "inserted" in seen and tip["max"] > 0.015:
+                    break
+            rospy.sleep(0.05)
+        with lock:
+            self.assertIn("inserted", seen)
+            self.assertGreater(tip["max"], 0.015)
+            self.assertEqual(rejected["n"], 0)
+
+
+if __name__ == "__main__":
+    rospy.init_node("check_scripted")
+    rostest.rosrun("needle_sim", "scripted_insertion", ScriptedInsertion)
