@@ -45,6 +45,12 @@ build() {
       -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
   fi
   cmake --build "$BUILD" -j"$(nproc)" >&2
+  # catkin puts the devel space's Python path (generated message modules) into its
+  # environment only if it exists at configure time: configure once more after the first
+  # build, so that devel/setup.bash and the rostests see needle_sim.msg.
+  if grep -q "^export PYTHONPATH=''" "$BUILD/catkin_generated/setup_cached.sh" 2>/dev/null; then
+    cmake "$BUILD" >&2
+  fi
   cmake --build "$BUILD" -j"$(nproc)" --target tests >&2
 }
 

@@ -86,9 +86,13 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
     const std::string& name = scene_.needles[i].name;
     wrench_pubs_.push_back(nh_.advertise<geometry_msgs::WrenchStamped>(name + "/wrench", 10));
     path_pubs_.push_back(nh_.advertise<nav_msgs::Path>(name + "/path", 10));
-    if (command_source_ == "topic")
+    if (command_source_ == "topic") {
       command_subs_.push_back(nh_.subscribe<geometry_msgs::PoseStamped>(
           name + "/command_pose", 100, [this, i](const geometry_msgs::PoseStamped::ConstPtr& m) { onCommand(i, m); }));
+      command_subs_.push_back(nh_.subscribe<needle_sim::NeedleTrajectory>(
+          name + "/command_trajectory", 10,
+          [this, i](const needle_sim::NeedleTrajectory::ConstPtr& m) { onTrajectory(i, m); }));
+    }
   }
   reset_srv_ = nh_.advertiseService("reset", &SimulatorRos::onReset, this);
   thread_ = std::thread(&SimulatorRos::worker, this);
@@ -115,6 +119,7 @@ void SimulatorRos::load() {
     for (const auto& n : scene_.needles) last_pose_.push_back({n.base_position, n.base_direction, n.base_roll});
     last_stamp_.assign(scene_.needles.size(), ros::Time(0));
     commands_.clear();
+    plans_.clear();
   }
   failure_.clear();
   step_ms_max_ = 0;
@@ -168,6 +173,39 @@ void SimulatorRos::onCommand(int needle, const geometry_msgs::PoseStamped::Const
   commands_.push_back({needle, c.pose, interval});
 }
 
+void SimulatorRos::onTrajectory(int needle, const needle_sim::NeedleTrajectory::ConstPtr& m) {
+  const std::string& name = scene_.needles[needle].name;
+  const auto& nsc = scene_.needles[needle];
+  const BasePose rest{nsc.base_position, nsc.base_direction, nsc.base_roll};
+  auto reject = [&](const std::string& why) {
+    ++rejected_;
+    ROS_WARN_THROTTLE(1.0, "needle_sim: %s/command_trajectory rejected: %s", name.c_str(), why.c_str());
+  };
+  if (m->waypoints.empty()) return reject("no waypoints");
+  std::lock_guard<std::mutex> lk(queue_mutex_);
+  Plan plan{needle, {}};
+  BasePose prev = last_pose_[needle];
+  double t_prev = 0;
+  for (size_t k = 0; k < m->waypoints.size(); ++k) {
+    const auto& w = m->waypoints[k];
+    const double t = w.time_from_start.toSec();
+    if (!std::isfinite(t) || t < 0 || (k > 0 && t <= t_prev))
+      return reject("waypoint " + std::to_string(k) + ": time_from_start not increasing");
+    const Vec3 p(w.pose.position.x, w.pose.position.y, w.pose.position.z);
+    const Eigen::Quaterniond q(w.pose.orientation.w, w.pose.orientation.x, w.pose.orientation.y, w.pose.orientation.z);
+    // A plan is not silently changed: a waypoint too fast for ~max_speed rejects it.
+    const CommandCheck c =
+        checkCommand(p, q, prev, rest, std::max(t - t_prev, scene_.dt), max_speed_, lo_, hi_, workspace_margin_);
+    if (c.verdict != CommandCheck::Verdict::Accept) return reject("waypoint " + std::to_string(k) + ": " + c.reason);
+    plan.waypoints.emplace_back(t, c.pose);
+    prev = c.pose;
+    t_prev = t;
+  }
+  last_pose_[needle] = prev;
+  last_stamp_[needle] = ros::Time(0);
+  plans_.push_back(std::move(plan));
+}
+
 bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
   std::lock_guard<std::mutex> lk(sim_mutex_);
   try {
@@ -186,25 +224,45 @@ bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Respo
 void SimulatorRos::worker() {
   for (;;) {
     std::vector<Command> cmds;
+    std::vector<Plan> plans;
     {
       std::unique_lock<std::mutex> lk(queue_mutex_);
       wake_.wait(lk, [&] { return stop_ || pending_ > 0 || as_fast_; });
       if (stop_) return;
       if (pending_ > 0) --pending_;
       cmds.swap(commands_);
+      plans.swap(plans_);
     }
     std::lock_guard<std::mutex> lk(sim_mutex_);
     // A command becomes a keyframe one command interval after the needle's previous one
     // (so that a stream of poses is followed smoothly), and never earlier than the end of
     // this step.
+    const double now = sim_->time();
+    auto anchor = [&](BaseTrajectory& traj) {  // the base moves on from where it is now
+      if (traj.lastTime() < now) traj.add(now, traj.pose(now));
+      if (traj.size() > 256) traj.dropBefore(now);
+    };
     for (const auto& c : cmds) {
       auto& traj = sim_->needle(c.needle).trajectory();
-      const double t = std::max(sim_->time() + scene_.dt, traj.lastTime() + c.interval);
+      const double t = std::max(now + scene_.dt, traj.lastTime() + c.interval);
+      anchor(traj);
       try {
         traj.add(t, c.pose);
       } catch (const std::invalid_argument&) {
         // a second command for the same step: the later one wins
         traj.replaceLast(c.pose);
+      }
+    }
+    // A plan replaces what was commanded after now; its waypoints are timed from now.
+    for (const auto& p : plans) {
+      auto& traj = sim_->needle(p.needle).trajectory();
+      const double t0 = now;
+      traj.truncateAfter(t0);
+      anchor(traj);
+      for (const auto& [dt, pose] : p.waypoints) {
+        const double t = std::max(t0 + dt, t0 + scene_.dt);
+        if (t > traj.lastTime()) traj.add(t, pose);
+        else traj.replaceLast(pose);
       }
     }
     stepOnce();

@@ -12,6 +12,7 @@
 #include <geometry_msgs/PoseStamped.h>
 #include <geometry_msgs/WrenchStamped.h>
 #include <nav_msgs/Path.h>
+#include <needle_sim/NeedleTrajectory.h>
 #include <needle_sim/SimStatus.h>
 #include <sensor_msgs/PointCloud2.h>
 #include <sensor_msgs/point_cloud2_iterator.h>
@@ -213,6 +214,32 @@ TEST(NeedleSimNode, CommandedInsertionRejectsBadCommandsAndResets) {
   ASSERT_TRUE(waitFor([&] { return L.lastStatus().rejected_commands == 0 && L.lastStatus().step < 500; }, 5.0));
   ASSERT_TRUE(waitFor([&] { return std::abs(L.tipX() - tip0) < 1e-9; }, 5.0)) << L.tipX();
   EXPECT_EQ(L.lastStatus().insertion_states[0], "approaching");
+
+  // 7. A planned trajectory: 2.5 mm in 1 s in free space (the tip stays 0.5 mm in front of
+  //    the tissue), then held; a plan with a NaN waypoint is rejected whole.
+  ros::Publisher plan = nh.advertise<needle_sim::NeedleTrajectory>("needle/command_trajectory", 10);
+  ASSERT_TRUE(waitFor([&] { return plan.getNumSubscribers() > 0; }, 10.0));
+  auto waypoint = [](double t, double x) {
+    needle_sim::NeedleWaypoint w;
+    w.time_from_start = ros::Duration(t);
+    w.pose = pose(x).pose;
+    return w;
+  };
+  needle_sim::NeedleTrajectory bad_plan;
+  bad_plan.waypoints = {waypoint(0.5, kBaseX + 0.001), waypoint(1.0, std::nan(""))};
+  const auto rejected_before = L.lastStatus().rejected_commands;
+  plan.publish(bad_plan);
+  ASSERT_TRUE(waitFor([&] { return L.lastStatus().rejected_commands == rejected_before + 1; }, 5.0));
+  needle_sim::NeedleTrajectory good_plan;
+  good_plan.waypoints = {waypoint(0.5, kBaseX + 0.00125), waypoint(1.0, kBaseX + 0.0025)};
+  plan.publish(good_plan);
+  ros::WallDuration(0.5).sleep();
+  const double mid = L.tipX() - tip0;
+  EXPECT_GT(mid, 0.0003);
+  EXPECT_LT(mid, 0.0022);
+  ASSERT_TRUE(waitFor([&] { return std::abs(L.tipX() - tip0 - 0.0025) < 5e-5; }, 5.0)) << L.tipX() - tip0;
+  EXPECT_EQ(L.lastStatus().insertion_states[0], "approaching");
+  EXPECT_EQ(L.lastStatus().rejected_commands, rejected_before + 1);
 }
 
 int main(int argc, char** argv) {

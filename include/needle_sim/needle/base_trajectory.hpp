@@ -35,6 +35,20 @@ class BaseTrajectory {
   // the rest axis to the commanded axis, after a roll about the rest axis.
   Eigen::Quaterniond orientation(const BasePose& p) const;
   const BasePose& rest() const { return rest_; }
+  // Drops the keyframes after time t, keeping the pose at t (a new plan starts there).
+  void truncateAfter(double t) {
+    if (keys_.empty() || keys_.back().t <= t) return;
+    const BasePose at = pose(t);
+    while (!keys_.empty() && keys_.back().t > t) keys_.pop_back();
+    if (keys_.empty() || keys_.back().t < t) keys_.push_back({t, at});
+  }
+  // Forgets keyframes that no longer matter at times >= t (all but the last one before t),
+  // so that a stream of commands does not grow the list without bound.
+  void dropBefore(double t) {
+    size_t k = 0;
+    while (k + 1 < keys_.size() && keys_[k + 1].t <= t) ++k;
+    if (k > 0) keys_.erase(keys_.begin(), keys_.begin() + static_cast<long>(k));
+  }
   // Time of the last keyframe (-infinity when there is none).
   double lastTime() const { return keys_.empty() ? -std::numeric_limits<double>::infinity() : keys_.back().t; }
   size_t size() const { return keys_.size(); }

@@ -19,7 +19,8 @@
 //   ~as_fast_as_possible (false)   step back to back instead of at the scene's dt
 //   ~display_rate (30 Hz)          rate of the heavy outputs (cloud, surface, error markers)
 // Topics: subscribes <needle>/command_pose (geometry_msgs/PoseStamped; the needle axis is
-// the pose's x axis); publishes status (needle_sim/SimStatus), <needle>/wrench
+// the pose's x axis) and <needle>/command_trajectory (needle_sim/NeedleTrajectory: a plan
+// that replaces the commands after its arrival); publishes status (needle_sim/SimStatus), <needle>/wrench
 // (geometry_msgs/WrenchStamped: the force and moment the needle exerts on its holder, what a
 // force/torque sensor at the base reads; it opposes the insertion while the tissue resists),
 // <needle>/path (nav_msgs/Path: the centre line), tissue/deformation (sensor_msgs/
@@ -41,6 +42,7 @@
 #include <vector>
 
 #include <geometry_msgs/PoseStamped.h>
+#include <needle_sim/NeedleTrajectory.h>
 #include <std_srvs/Trigger.h>
 #include <diagnostic_updater/diagnostic_updater.h>
 
@@ -77,6 +79,11 @@ class SimulatorRos {
     BasePose pose;
     double interval;  // since the needle's previous command [s]: the base gets this long to get there
   };
+  struct Plan {  // a validated NeedleTrajectory
+    int needle;
+    std::vector<std::pair<double, BasePose>> waypoints;  // (time from start, pose)
+  };
+  void onTrajectory(int needle, const needle_sim::NeedleTrajectory::ConstPtr& msg);
   void load();
   void onTimer(const ros::TimerEvent&);
   void onCommand(int needle, const geometry_msgs::PoseStamped::ConstPtr& msg);
@@ -112,6 +119,7 @@ class SimulatorRos {
   std::mutex queue_mutex_;  // guards commands_, pending_
   std::condition_variable wake_;
   std::vector<Command> commands_;
+  std::vector<Plan> plans_;
   int pending_ = 0;
   bool stop_ = false;
   std::atomic<uint64_t> overruns_{0}, rejected_{0}, clamped_{0};
