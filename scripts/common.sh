@@ -12,7 +12,7 @@ PACKAGES=(
   cmake g++ catkin ros-core-dev rosbash libroscpp-dev ros-std-msgs ros-geometry-msgs
   ros-sensor-msgs ros-nav-msgs ros-std-srvs ros-visualization-msgs libdiagnostic-updater-dev
   python3-rospy python3-geometry-msgs python3-nav-msgs
-  libnodeletlib-dev libnodeletlib-tools
+  libnodeletlib-dev libnodeletlib-tools pluginlib-dev
   python3-rostest librostest-dev libgtest-dev
   # core library
   libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev libcli11-dev
