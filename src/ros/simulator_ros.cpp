@@ -9,6 +9,7 @@
 #include <sensor_msgs/point_cloud2_iterator.h>
 #include <visualization_msgs/MarkerArray.h>
 
+#include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/error.hpp"
 #include <needle_sim/SimStatus.h>
 #include "needle_sim/scene/scene_loader.hpp"
@@ -65,6 +66,10 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   pnh_.param("workspace_margin", workspace_margin_, 0.2);
   pnh_.param("as_fast_as_possible", as_fast_, false);
   pnh_.param("display_rate", display_rate_, 30.0);
+  int blas_threads = 1;
+  pnh_.param("blas_threads", blas_threads, 1);
+  if (blas_threads < 1) throw InputError("", "~blas_threads", "must be >= 1");
+  setBlasThreads(blas_threads);  // OpenBLAS threads spin between the small per-step solves
   if (!(display_rate_ > 0)) throw InputError("", "~display_rate", "must be > 0");
   if (command_source_ != "topic" && command_source_ != "scene")
     throw InputError("", "~command_source", "must be topic or scene, got '" + command_source_ + "'");
@@ -283,7 +288,9 @@ void SimulatorRos::stepOnce() {
     ms = (ros::WallTime::now() - t0).toSec() * 1e3;
     step_ms_max_ = std::max(step_ms_max_, ms);
   }
+  const auto p0 = ros::WallTime::now();
   publish(s, ms);
+  publish_ms_ = (ros::WallTime::now() - p0).toSec() * 1e3;
 }
 
 void SimulatorRos::publish(const StepStats& s, double ms) {
@@ -304,6 +311,7 @@ void SimulatorRos::publish(const StepStats& s, double ms) {
   st.tissue_elements = sim_->hasTissue() ? sim_->tissue().mesh().numElements() : 0;
   st.step_ms = ms;
   st.step_ms_max = step_ms_max_;
+  st.publish_ms = publish_ms_;
   const double dw = (rtf_window_.back().first - rtf_window_.front().first).toSec();
   st.real_time_factor = dw > 0 ? (rtf_window_.back().second - rtf_window_.front().second) / dw : 0.0;
   st.overruns = overruns_;
@@ -338,21 +346,6 @@ void SimulatorRos::publish(const StepStats& s, double ms) {
     w.wrench.force.x = f.x(), w.wrench.force.y = f.y(), w.wrench.force.z = f.z();
     w.wrench.torque.x = m.x(), w.wrench.torque.y = m.y(), w.wrench.torque.z = m.z();
     wrench_pubs_[i].publish(w);
-    if (path_pubs_[i].getNumSubscribers() > 0) {
-      nav_msgs::Path path;
-      path.header = st.header;
-      for (int k = 0; k < nd.beam().numNodes(); ++k) {
-        geometry_msgs::PoseStamped ps;
-        ps.header = st.header;
-        const Vec3& p = nd.state().p[k];
-        const Eigen::Quaterniond& q = nd.state().q[k];
-        ps.pose.position.x = p.x(), ps.pose.position.y = p.y(), ps.pose.position.z = p.z();
-        ps.pose.orientation.w = q.w(), ps.pose.orientation.x = q.x(), ps.pose.orientation.y = q.y(),
-        ps.pose.orientation.z = q.z();
-        path.poses.push_back(ps);
-      }
-      path_pubs_[i].publish(path);
-    }
   }
 
   const ros::WallTime wnow = ros::WallTime::now();
@@ -363,10 +356,28 @@ void SimulatorRos::publish(const StepStats& s, double ms) {
 }
 
 void SimulatorRos::publishDisplay() {
-  if (!sim_->hasTissue()) return;
   std_msgs::Header header;
   header.stamp = ros::Time::now();
   header.frame_id = frame_;
+  for (int i = 0; i < sim_->numNeedles(); ++i) {
+    const NeedleBody& nd = sim_->needle(i);
+    if (path_pubs_[i].getNumSubscribers() > 0) {
+      nav_msgs::Path path;
+      path.header = header;
+      for (int k = 0; k < nd.beam().numNodes(); ++k) {
+        geometry_msgs::PoseStamped ps;
+        ps.header = header;
+        const Vec3& p = nd.state().p[k];
+        const Eigen::Quaterniond& q = nd.state().q[k];
+        ps.pose.position.x = p.x(), ps.pose.position.y = p.y(), ps.pose.position.z = p.z();
+        ps.pose.orientation.w = q.w(), ps.pose.orientation.x = q.x(), ps.pose.orientation.y = q.y(),
+        ps.pose.orientation.z = q.z();
+        path.poses.push_back(ps);
+      }
+      path_pubs_[i].publish(path);
+    }
+  }
+  if (!sim_->hasTissue()) return;
   if (cloud_pub_.getNumSubscribers() > 0) {
     // Nodal values: displacement, and the average over the node's elements of the centroid
     // von Mises stress and of the SPR indicator eta.

@@ -17,7 +17,8 @@
 //   ~command_timeout (0.5 s)       commands older than this (header stamp) are rejected
 //   ~workspace_margin (0.2 m)      commands farther than this from the tissue's box are rejected
 //   ~as_fast_as_possible (false)   step back to back instead of at the scene's dt
-//   ~display_rate (30 Hz)          rate of the heavy outputs (cloud, surface, error markers)
+//   ~display_rate (30 Hz)          rate of the heavy outputs (cloud, surface, error markers, path)
+//   ~blas_threads (1)              BLAS threads under CHOLMOD (as the needle_sim tool)
 // Topics: subscribes <needle>/command_pose (geometry_msgs/PoseStamped; the needle axis is
 // the pose's x axis) and <needle>/command_trajectory (needle_sim/NeedleTrajectory: a plan
 // that replaces the commands after its arrival); publishes status (needle_sim/SimStatus), <needle>/wrench
@@ -114,6 +115,7 @@ class SimulatorRos {
   std::vector<ros::Time> last_stamp_;
   std::string failure_;
   double step_ms_max_ = 0;
+  double publish_ms_ = 0;  // last publish() call
   std::deque<std::pair<ros::WallTime, double>> rtf_window_;  // (wall, sim time)
 
   std::mutex queue_mutex_;  // guards commands_, pending_

@@ -1,0 +1,69 @@
+#!/usr/bin/python3
+"""The ROS node's overhead beyond the core step: subscribes to every output of a running
+needle_sim node (so that the heavy ones are built) and reads, from `status`, the core step
+time and the time the node spent converting and publishing, over ~seconds.
+
+Sample run (the phantom insertion, scripted by the scene):
+
+    source build/devel/setup.bash
+    roslaunch needle_sim sim.launch &
+    scripts/node_overhead.py --seconds 4
+"""
+import argparse
+import statistics
+import threading
+
+import rospy
+from geometry_msgs.msg import WrenchStamped
+from nav_msgs.msg import Path
+from needle_sim.msg import SimStatus
+from sensor_msgs.msg import PointCloud2
+from visualization_msgs.msg import Marker, MarkerArray
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=4.0)
+    ap.add_argument("--needle", default="needle")
+    args = ap.parse_args(rospy.myargv()[1:])
+    rospy.init_node("node_overhead", anonymous=True)
+    lock = threading.Lock()
+    step, pub, counts = [], [], {}
+
+    def count(name):
+        def cb(_):
+            with lock:
+                counts[name] = counts.get(name, 0) + 1
+        return cb
+
+    def on_status(m):
+        with lock:
+            if m.step_ms > 0:
+                step.append(m.step_ms)
+                pub.append(m.publish_ms)
+
+    subs = [rospy.Subscriber("status", SimStatus, on_status),
+            rospy.Subscriber(args.needle + "/wrench", WrenchStamped, count("wrench")),
+            rospy.Subscriber(args.needle + "/path", Path, count("path")),
+            rospy.Subscriber("tissue/deformation", PointCloud2, count("deformation")),
+            rospy.Subscriber("tissue/surface", Marker, count("surface")),
+            rospy.Subscriber("tissue/error_markers", MarkerArray, count("error_markers"))]
+    rospy.sleep(1.0)  # let the subscriptions settle
+    with lock:
+        step.clear()
+        pub.clear()
+        counts.clear()
+    rospy.sleep(args.seconds)
+    with lock:
+        if not step:
+            raise SystemExit("node_overhead: no status received (is the node running?)")
+        share = sum(pub) / sum(step)
+        print(f"steps: {len(step)}, messages: {counts}")
+        print(f"core step median {statistics.median(step):.3f} ms, publish median {statistics.median(pub):.3f} ms, "
+              f"publish p95 {sorted(pub)[int(0.95 * (len(pub) - 1))]:.3f} ms, overhead (sum publish / sum step) "
+              f"{100 * share:.1f} %")
+    del subs
+
+
+if __name__ == "__main__":
+    main()
