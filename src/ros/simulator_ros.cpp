@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include <geometry_msgs/WrenchStamped.h>
 #include <nav_msgs/Path.h>
@@ -63,6 +64,8 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   pnh_.param<std::string>("command_source", command_source_, "topic");
   pnh_.param("max_speed", max_speed_, 0.05);
   pnh_.param("command_timeout", command_timeout_, 0.5);
+  pnh_.param("command_latency", command_latency_, 0.005);
+  if (!(command_latency_ >= 0)) throw InputError("", "~command_latency", "must be >= 0");
   pnh_.param("workspace_margin", workspace_margin_, 0.2);
   pnh_.param("as_fast_as_possible", as_fast_, false);
   pnh_.param("display_rate", display_rate_, 30.0);
@@ -125,6 +128,9 @@ void SimulatorRos::load() {
     last_stamp_.assign(scene_.needles.size(), ros::Time(0));
     commands_.clear();
     plans_.clear();
+    pending_ = 0;
+    scheduled_ = 0;
+    start_time_ = ros::Time::now();
   }
   failure_.clear();
   step_ms_max_ = 0;
@@ -137,11 +143,35 @@ void SimulatorRos::load() {
   }
 }
 
+// The simulation follows ROS time (the wall clock, or /clock under /use_sim_time): at
+// each tick it is due floor(elapsed / dt) steps since the start, whatever the tick rate, so
+// a bag replayed with --clock gives the same steps as the recording. A clock that jumps
+// back (a bag played in a loop) restarts the scene.
 void SimulatorRos::onTimer(const ros::TimerEvent&) {
+  const ros::Time now = ros::Time::now();
+  if (now.isZero()) return;  // sim time before the first /clock
+  bool restart = false;
   {
     std::lock_guard<std::mutex> lk(queue_mutex_);
-    if (pending_ > 0) ++overruns_;  // the previous period's step has not started yet
-    pending_ = std::min(pending_ + 1, 1000);
+    if (start_time_.isZero() || now < last_tick_) {
+      restart = !start_time_.isZero();
+      start_time_ = now;
+      scheduled_ = 0;
+    }
+    last_tick_ = now;
+    const long due = static_cast<long>(std::floor((now - start_time_).toSec() / scene_.dt + 1e-6));
+    if (due > scheduled_) {
+      if (pending_ > 0) ++overruns_;  // the previous period's step has not started yet
+      pending_ = static_cast<int>(std::min<long>(pending_ + (due - scheduled_), 100000));
+      scheduled_ = due;
+    }
+  }
+  if (restart) {
+    ROS_WARN("needle_sim: time jumped back (bag loop?): the scene restarts");
+    std_srvs::Trigger::Request req;
+    std_srvs::Trigger::Response res;
+    onReset(req, res);
+    return;
   }
   wake_.notify_one();
 }
@@ -175,7 +205,10 @@ void SimulatorRos::onCommand(int needle, const geometry_msgs::PoseStamped::Const
   }
   last_pose_[needle] = c.pose;
   last_stamp_[needle] = m->header.stamp;
-  commands_.push_back({needle, c.pose, interval});
+  const double at = (!m->header.stamp.isZero() && !start_time_.isZero())
+                       ? (m->header.stamp - start_time_).toSec() + command_latency_
+                       : std::numeric_limits<double>::quiet_NaN();
+  commands_.push_back({needle, c.pose, interval, at});
 }
 
 void SimulatorRos::onTrajectory(int needle, const needle_sim::NeedleTrajectory::ConstPtr& m) {
@@ -249,7 +282,7 @@ void SimulatorRos::worker() {
     };
     for (const auto& c : cmds) {
       auto& traj = sim_->needle(c.needle).trajectory();
-      const double t = std::max(now + scene_.dt, traj.lastTime() + c.interval);
+      const double t = std::max(now + scene_.dt, std::isnan(c.at) ? traj.lastTime() + c.interval : c.at);
       anchor(traj);
       try {
         traj.add(t, c.pose);

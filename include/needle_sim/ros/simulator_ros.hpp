@@ -15,6 +15,9 @@
 //                                  command is reached over the interval since the previous
 //                                  one (header stamps; at least one step)
 //   ~command_timeout (0.5 s)       commands older than this (header stamp) are rejected
+//   ~command_latency (0.005 s)     a stamped command is reached at its stamp plus this (or at
+//                                  the end of the step, if later): steps do not depend on when
+//                                  messages arrive, so a replayed bag gives the same run
 //   ~workspace_margin (0.2 m)      commands farther than this from the tissue's box are rejected
 //   ~as_fast_as_possible (false)   step back to back instead of at the scene's dt
 //   ~display_rate (30 Hz)          rate of the heavy outputs (cloud, surface, error markers, path)
@@ -79,6 +82,7 @@ class SimulatorRos {
     int needle;
     BasePose pose;
     double interval;  // since the needle's previous command [s]: the base gets this long to get there
+    double at;        // simulation time its stamp asks for (stamp + ~command_latency), NaN without a stamp
   };
   struct Plan {  // a validated NeedleTrajectory
     int needle;
@@ -99,6 +103,7 @@ class SimulatorRos {
   std::string scene_file_, frame_, command_source_;
   std::vector<std::string> overrides_;
   double max_speed_ = 0.05, command_timeout_ = 0.5, workspace_margin_ = 0.2, display_rate_ = 30;
+  double command_latency_ = 0.005;
   ros::WallTime last_display_;
   // Boundary faces of the current tissue mesh (recomputed when the mesh changes).
   const HexMesh* faces_mesh_ = nullptr;
@@ -123,6 +128,8 @@ class SimulatorRos {
   std::vector<Command> commands_;
   std::vector<Plan> plans_;
   int pending_ = 0;
+  ros::Time start_time_, last_tick_;  // ROS time of step 0, of the last tick
+  long scheduled_ = 0;                // steps due since start_time_
   bool stop_ = false;
   std::atomic<uint64_t> overruns_{0}, rejected_{0}, clamped_{0};
 
