@@ -74,12 +74,20 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   if (blas_threads < 1) throw InputError("", "~blas_threads", "must be >= 1");
   setBlasThreads(blas_threads);  // OpenBLAS threads spin between the small per-step solves
   if (!(display_rate_ > 0)) throw InputError("", "~display_rate", "must be > 0");
-  if (command_source_ != "topic" && command_source_ != "scene")
-    throw InputError("", "~command_source", "must be topic or scene, got '" + command_source_ + "'");
+  if (command_source_ != "topic" && command_source_ != "scene" && command_source_ != "tf")
+    throw InputError("", "~command_source", "must be topic, scene or tf, got '" + command_source_ + "'");
   if (!(max_speed_ > 0)) throw InputError("", "~max_speed", "must be > 0");
   scene_ = loadScene(scene_file_, overrides_);
-  if (command_source_ == "topic")
+  if (command_source_ != "scene")
     for (auto& n : scene_.needles) n.motion.clear();  // the base follows the commands only
+  if (command_source_ == "tf") {
+    std::string single;
+    pnh_.param<std::string>("needle_base_frame", single, "");
+    for (const auto& n : scene_.needles)
+      base_frames_.push_back(!single.empty() && scene_.needles.size() == 1 ? single : n.name + "_base");
+    tf_buffer_ = std::make_unique<tf2_ros::Buffer>();
+    tf_listener_ = std::make_unique<tf2_ros::TransformListener>(*tf_buffer_, nh_);
+  }
   load();
 
   status_pub_ = nh_.advertise<needle_sim::SimStatus>("status", 10);
@@ -150,6 +158,7 @@ void SimulatorRos::load() {
 void SimulatorRos::onTimer(const ros::TimerEvent&) {
   const ros::Time now = ros::Time::now();
   if (now.isZero()) return;  // sim time before the first /clock
+  if (tf_buffer_) lookupTfCommands();
   bool restart = false;
   {
     std::lock_guard<std::mutex> lk(queue_mutex_);
@@ -179,34 +188,60 @@ void SimulatorRos::onTimer(const ros::TimerEvent&) {
 void SimulatorRos::onCommand(int needle, const geometry_msgs::PoseStamped::ConstPtr& m) {
   const Vec3 p(m->pose.position.x, m->pose.position.y, m->pose.position.z);
   const Eigen::Quaterniond q(m->pose.orientation.w, m->pose.orientation.x, m->pose.orientation.y, m->pose.orientation.z);
-  const std::string& name = scene_.needles[needle].name;
-  if (!m->header.stamp.isZero() && (ros::Time::now() - m->header.stamp).toSec() > command_timeout_) {
+  acceptCommand(needle, p, q, m->header.stamp, scene_.needles[needle].name + "/command_pose");
+}
+
+void SimulatorRos::lookupTfCommands() {
+  for (int i = 0; i < static_cast<int>(base_frames_.size()); ++i) {
+    geometry_msgs::TransformStamped tr;
+    try {
+      tr = tf_buffer_->lookupTransform(frame_, base_frames_[i], ros::Time(0));
+    } catch (const tf2::TransformException& e) {
+      ++tf_failures_;
+      ROS_WARN_THROTTLE(1.0, "needle_sim: no base pose from tf (%s -> %s): %s; the base holds", frame_.c_str(),
+                        base_frames_[i].c_str(), e.what());
+      continue;
+    }
+    {
+      std::lock_guard<std::mutex> lk(queue_mutex_);
+      if (!tr.header.stamp.isZero() && tr.header.stamp == last_stamp_[i]) continue;  // nothing new
+    }
+    const auto& t = tr.transform;
+    acceptCommand(i, Vec3(t.translation.x, t.translation.y, t.translation.z),
+                  Eigen::Quaterniond(t.rotation.w, t.rotation.x, t.rotation.y, t.rotation.z), tr.header.stamp,
+                  "tf " + base_frames_[i]);
+  }
+}
+
+void SimulatorRos::acceptCommand(int needle, const Vec3& p, const Eigen::Quaterniond& q, const ros::Time& stamp,
+                                 const std::string& source) {
+  const char* name = source.c_str();
+  if (!stamp.isZero() && (ros::Time::now() - stamp).toSec() > command_timeout_) {
     ++rejected_;
-    ROS_WARN_THROTTLE(1.0, "needle_sim: %s/command_pose rejected: stale (older than ~command_timeout = %g s)",
-                      name.c_str(), command_timeout_);
+    ROS_WARN_THROTTLE(1.0, "needle_sim: %s rejected: stale (older than ~command_timeout = %g s)", name,
+                      command_timeout_);
     return;
   }
   std::lock_guard<std::mutex> lk(queue_mutex_);
   const auto& nsc = scene_.needles[needle];
   double interval = scene_.dt;
-  if (!m->header.stamp.isZero() && !last_stamp_[needle].isZero())
-    interval = std::clamp((m->header.stamp - last_stamp_[needle]).toSec(), scene_.dt, 1.0);
+  if (!stamp.isZero() && !last_stamp_[needle].isZero())
+    interval = std::clamp((stamp - last_stamp_[needle]).toSec(), scene_.dt, 1.0);
   const CommandCheck c = checkCommand(p, q, last_pose_[needle], {nsc.base_position, nsc.base_direction, nsc.base_roll}, interval,
                                       max_speed_, lo_, hi_, workspace_margin_);
   if (c.verdict == CommandCheck::Verdict::Reject) {
     ++rejected_;
-    ROS_WARN_THROTTLE(1.0, "needle_sim: %s/command_pose rejected: %s", name.c_str(), c.reason.c_str());
+    ROS_WARN_THROTTLE(1.0, "needle_sim: %s rejected: %s", name, c.reason.c_str());
     return;
   }
   if (c.verdict == CommandCheck::Verdict::Clamp) {
     ++clamped_;
-    ROS_WARN_THROTTLE(1.0, "needle_sim: %s/command_pose clamped: %s (%g m/s)", name.c_str(), c.reason.c_str(),
-                      max_speed_);
+    ROS_WARN_THROTTLE(1.0, "needle_sim: %s clamped: %s (%g m/s)", name, c.reason.c_str(), max_speed_);
   }
   last_pose_[needle] = c.pose;
-  last_stamp_[needle] = m->header.stamp;
-  const double at = (!m->header.stamp.isZero() && !start_time_.isZero())
-                       ? (m->header.stamp - start_time_).toSec() + command_latency_
+  last_stamp_[needle] = stamp;
+  const double at = (!stamp.isZero() && !start_time_.isZero())
+                       ? (stamp - start_time_).toSec() + command_latency_
                        : std::numeric_limits<double>::quiet_NaN();
   commands_.push_back({needle, c.pose, interval, at});
 }
@@ -550,6 +585,7 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   stat.add("overruns", ov);
   stat.add("rejected_commands", rej);
   stat.add("clamped_commands", cl);
+  stat.add("tf_failures", static_cast<uint64_t>(tf_failures_));
 }
 
 }  // namespace needle_sim

@@ -10,7 +10,10 @@
 //   ~set (string list)             key.path=value overrides, as `needle_sim run --set`
 //   ~tissue_frame ("tissue")       frame of every output
 //   ~command_source ("topic")      topic: needle base poses from <needle>/command_pose;
-//                                  scene: follow the scene's own motion keyframes (demo)
+//                                  scene: follow the scene's own motion keyframes (demo);
+//                                  tf: the base pose is the transform ~tissue_frame ->
+//                                  ~needle_base_frame (default <needle>_base), read every step
+//   ~needle_base_frame             the base frame for tf commands (one needle)
 //   ~max_speed (0.05 m/s)          faster commands are clamped to it (warning, counted); a
 //                                  command is reached over the interval since the previous
 //                                  one (header stamps; at least one step)
@@ -49,6 +52,8 @@
 #include <needle_sim/NeedleTrajectory.h>
 #include <std_srvs/Trigger.h>
 #include <diagnostic_updater/diagnostic_updater.h>
+#include <tf2_ros/buffer.h>
+#include <tf2_ros/transform_listener.h>
 
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/simulation.hpp"
@@ -92,6 +97,10 @@ class SimulatorRos {
   void load();
   void onTimer(const ros::TimerEvent&);
   void onCommand(int needle, const geometry_msgs::PoseStamped::ConstPtr& msg);
+  // Validates a base pose command and queues it for the worker (every command source).
+  void acceptCommand(int needle, const Vec3& p, const Eigen::Quaterniond& q, const ros::Time& stamp,
+                     const std::string& source);
+  void lookupTfCommands();  // ~command_source: tf
   bool onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   void worker();
   void stepOnce();  // with sim_mutex_ held
@@ -133,6 +142,10 @@ class SimulatorRos {
   bool stop_ = false;
   std::atomic<uint64_t> overruns_{0}, rejected_{0}, clamped_{0};
 
+  std::unique_ptr<tf2_ros::Buffer> tf_buffer_;
+  std::unique_ptr<tf2_ros::TransformListener> tf_listener_;
+  std::vector<std::string> base_frames_;
+  std::atomic<uint64_t> tf_failures_{0};
   ros::Timer timer_;
   std::vector<ros::Subscriber> command_subs_;
   ros::Publisher status_pub_, cloud_pub_, surface_pub_, error_pub_;
