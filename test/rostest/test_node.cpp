@@ -5,6 +5,8 @@
 #include <gtest/gtest.h>
 #include <ros/ros.h>
 
+#include "wait_for.hpp"
+
 #include <atomic>
 #include <cmath>
 #include <mutex>
@@ -42,15 +44,7 @@ struct Listener {
   }
 };
 
-template <class F>
-bool waitFor(F cond, double seconds) {
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(seconds);
-  while (ros::ok() && ros::WallTime::now() < end) {
-    if (cond()) return true;
-    ros::WallDuration(0.01).sleep();
-  }
-  return cond();
-}
+using needle_sim_test::waitFor;
 
 const double kBaseX = -0.035, kY = 0.01, kZ = 0.01;  // phantom_insertion_8x4x4.yaml
 

@@ -3,6 +3,8 @@
 // the transform stops changing, the base holds where it is.
 #include <gtest/gtest.h>
 #include <ros/ros.h>
+
+#include "wait_for.hpp"
 #include <tf2_ros/transform_broadcaster.h>
 
 #include <cmath>
@@ -17,15 +19,7 @@ double tip_x = std::nan("");
 needle_sim::SimStatus status;
 bool have_status = false;
 
-template <class F>
-bool waitFor(F cond, double seconds) {
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(seconds);
-  while (ros::ok() && ros::WallTime::now() < end) {
-    if (cond()) return true;
-    ros::WallDuration(0.01).sleep();
-  }
-  return cond();
-}
+using needle_sim_test::waitFor;
 double tip() {
   std::lock_guard<std::mutex> lk(m);
   return tip_x;
