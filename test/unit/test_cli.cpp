@@ -38,6 +38,14 @@ fs::path freshDir(const std::string& name) {
   return d;
 }
 
+// First line of a CSV file (empty if it cannot be read).
+std::string csvHeader(const fs::path& file) {
+  std::ifstream in(file);
+  std::string header;
+  std::getline(in, header);
+  return header;
+}
+
 std::string firstLine(const fs::path& p) {
   std::ifstream in(p);
   std::string line;
@@ -124,9 +132,7 @@ TEST(Cli, NeedleRunWritesTipBaseReactionAndCenterline) {
   EXPECT_EQ(n["centerline"].size(), 21u);
   EXPECT_NEAR(n["direction"][0].get<double>(), 1.0, 1e-6);
   EXPECT_GT(n["base_force"][2].get<double>(), 0.0);  // the holder carries the weight
-  std::ifstream csv(out / "timeseries.csv");
-  std::string header;
-  std::getline(csv, header);
+  const std::string header = csvHeader(out / "timeseries.csv");
   for (const char* col : {"needle_tip_x", "needle_dir_z", "needle_base_fx", "needle_base_mz"})
     EXPECT_NE(header.find(col), std::string::npos) << col;
   std::ifstream cl(out / "centerline.csv");
@@ -170,10 +176,7 @@ TEST(Cli, ErrorEstimateAndVtuOnRequest) {
   const Result r = runTool("run '" + kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml' --out '" + out.string() +
                            "' --quiet --error-estimate --vtu --set time.duration=0.5");
   ASSERT_EQ(r.status, 0) << r.err;
-  std::ifstream csv(out / "timeseries.csv");
-  std::string header;
-  std::getline(csv, header);
-  EXPECT_NE(header.find("eta_global,eta_max,eta_relative"), std::string::npos);
+  EXPECT_NE(csvHeader(out / "timeseries.csv").find("eta_global,eta_max,eta_relative"), std::string::npos);
   const std::string check =
       "/usr/bin/python3 -c \"import sys, xml.etree.ElementTree as E; t = E.parse(sys.argv[1]); "
       "p = t.find('.//Piece'); assert p.get('NumberOfCells') == '128'; "
@@ -188,9 +191,7 @@ TEST(Cli, ErrorEstimateAndVtuOnRequest) {
                     "' --quiet --set time.duration=0.01")
                 .status,
             0);
-  std::ifstream csv2(plain / "timeseries.csv");
-  std::getline(csv2, header);
-  EXPECT_EQ(header.find("eta_"), std::string::npos);
+  EXPECT_EQ(csvHeader(plain / "timeseries.csv").find("eta_"), std::string::npos);
   EXPECT_FALSE(fs::exists(plain / "tissue.vtu"));
 }
 
@@ -201,9 +202,7 @@ TEST(Cli, AdaptiveRunOutputs) {
   const Result r = runTool("run '" + kSrc + "/config/scenes/phantom_insertion_adaptive.yaml' --out '" + out.string() +
                            "' --quiet --vtu --set time.duration=1.0");
   ASSERT_EQ(r.status, 0) << r.err;
-  std::ifstream csv(out / "timeseries.csv");
-  std::string header;
-  std::getline(csv, header);
+  const std::string header = csvHeader(out / "timeseries.csv");
   for (const char* col : {"eta_global", "tissue_elements", "elements_L0", "elements_L1", "elements_L2", "refined",
                           "coarsened", "estimate_ms", "mark_refine_ms", "rebuild_ms"})
     EXPECT_NE(header.find(col), std::string::npos) << col;

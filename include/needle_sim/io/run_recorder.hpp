@@ -52,7 +52,7 @@ class RunRecorder {
   double eta_last_ = 0, eta_max_last_ = 0, eta_rel_max_ = 0;
   int max_tissue_dofs_ = 0, mesh_changes_ = 0;
   long refined_total_ = 0, coarsened_total_ = 0;
-  std::vector<double> adapt_ms_, adapt_share_;
+  std::vector<double> adapt_ms_;
   std::string dir_;
   std::ofstream csv_, centerline_;
   std::vector<double> step_ms_, forces_ms_, assemble_ms_, factor_ms_, solve_ms_;

@@ -123,7 +123,6 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
     csv_ << ',' << s.refined << ',' << s.coarsened << ',' << s.estimate_ms << ',' << s.mark_refine_ms << ','
          << s.rebuild_ms;
     adapt_ms_.push_back(s.adapt_ms());
-    if (ms > 0) adapt_share_.push_back(s.adapt_ms() / ms);
     mesh_changes_ += s.mesh_changed;
     refined_total_ += s.refined;
     coarsened_total_ += s.coarsened;
