@@ -15,7 +15,7 @@ PACKAGES=(
   libnodeletlib-dev libnodeletlib-tools pluginlib-dev
   python3-rostest librostest-dev libgtest-dev
   # core library
-  libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev libcli11-dev
+  libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev libcli11-dev libassimp-dev
   # plots
   python3-matplotlib python3-yaml
 )

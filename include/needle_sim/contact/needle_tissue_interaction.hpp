@@ -44,7 +44,11 @@ struct InteractionStats {
 
 class NeedleTissueInteraction {
  public:
-  NeedleTissueInteraction(const InteractionSettings& settings, TissueBody& tissue, std::vector<NeedleBody*> needles);
+  // `organ`: the embedded organ surface of immersed geometry (the needle punctures it
+  // rather than the grid's boundary); nullptr for a meshed body. It must outlive the
+  // binding (rebind with the new one after a mesh change).
+  NeedleTissueInteraction(const InteractionSettings& settings, TissueBody& tissue, std::vector<NeedleBody*> needles,
+                          const EmbeddedSurface* organ = nullptr);
 
   // Between the bodies' freeMotion and commit.
   InteractionStats solve(double h);
@@ -52,7 +56,7 @@ class NeedleTissueInteraction {
   void afterCommit();
   // The tissue body was rebuilt on a refined or coarsened mesh: every constraint point is
   // re-embedded by its rest position, the surface and locators are rebuilt.
-  void rebind(TissueBody& tissue);
+  void rebind(TissueBody& tissue, const EmbeddedSurface* organ = nullptr);
 
   InsertionState state(int needle) const { return tracks_[needle].state; }
   int activePoints(int needle) const;
@@ -82,7 +86,7 @@ class NeedleTissueInteraction {
   // Appends to `out` (not to constraints_, which the caller may be iterating).
   void layShaftPoints(int n, const EmbeddedPoint& upto, std::vector<std::unique_ptr<ContactConstraint>>& out);
   void updateGeometry();
-  void bindTissue(TissueBody& tissue);
+  void bindTissue(TissueBody& tissue, const EmbeddedSurface* organ);
 
   InteractionSettings settings_;
   TissueBody* tissue_ = nullptr;

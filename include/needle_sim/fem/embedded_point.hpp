@@ -32,6 +32,10 @@ class PointLocator {
   explicit PointLocator(const HexMesh& mesh);
   // False when the point lies outside every element (with a 1e-9 tolerance in xi).
   bool locate(const Vec3& p, EmbeddedPoint& out) const;
+  // The material point of the nearest element (natural coordinates clamped to the element)
+  // among those binned around p: for points a rounding error outside the mesh. False only
+  // when no element is near.
+  bool locateNearest(const Vec3& p, EmbeddedPoint& out) const;
 
  private:
   const HexMesh& mesh_;

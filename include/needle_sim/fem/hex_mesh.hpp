@@ -51,6 +51,12 @@ class HexMesh {
   Vec3 boundsMin() const;
   Vec3 boundsMax() const;
 
+  // Volume fraction of each element that is material (immersed geometry); 1 when unset.
+  // Stiffness and mass of element e are weighted by it.
+  double fraction(int e) const { return fractions_.empty() ? 1.0 : fractions_[e]; }
+  bool hasFractions() const { return !fractions_.empty(); }
+  void setFractions(std::vector<double> f) { fractions_ = std::move(f); }
+
   // Lets tests perturb interior nodes (distorted-mesh patch tests).
   void setNode(int i, const Vec3& p) { nodes_[i] = p; }
 
@@ -58,6 +64,7 @@ class HexMesh {
   std::vector<Vec3> nodes_;
   std::vector<HexElement> elements_;
   std::set<std::array<int, 4>> interface_faces_;
+  std::vector<double> fractions_;
 };
 
 }  // namespace needle_sim

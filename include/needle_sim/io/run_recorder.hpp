@@ -8,6 +8,7 @@
 // node, s = rest arc length from the base, x, y, z). A failed run leaves summary.json with "status": "numerical_failure" and the step, so
 // nothing half-done looks like a result.
 #include <fstream>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -63,6 +64,7 @@ class RunRecorder {
   int max_constraint_points_ = 0;
   double max_constraint_residual_ = 0;
   std::vector<double> constraint_ms_;
+  std::map<std::string, double> min_target_distance_;  // "target/needle" -> closest tip approach
 };
 
 }  // namespace needle_sim

@@ -8,6 +8,7 @@
 
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/fem/hex_mesh.hpp"
+#include "needle_sim/geometry/triangle_mesh.hpp"
 
 namespace needle_sim {
 
@@ -19,5 +20,9 @@ struct VtuCellData {
 
 // Writes atomically (temporary file, then rename). Throws std::runtime_error on I/O errors.
 void writeVtu(const std::string& path, const HexMesh& mesh, const VecX& positions, const VtuCellData& cells);
+
+// An organ surface (immersed geometry) as VTK polydata (.vtp): current vertex positions,
+// triangles, and the vertex displacement from the rest surface.
+void writeSurfaceVtp(const std::string& path, const TriangleMesh& rest, const std::vector<Vec3>& positions);
 
 }  // namespace needle_sim

@@ -1,9 +1,9 @@
 #pragma once
 // The in-memory form of a scene file (SI units throughout). The loader
 // (scene_loader.hpp) fills it and guarantees every value is valid, so the rest of the
-// library can rely on it. Sections for the needle, interaction, adaptivity, immersed
-// geometry and targets are added here as those capabilities land.
+// library can rely on it.
 #include <array>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -12,6 +12,8 @@
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/contact/interaction_settings.hpp"
 #include "needle_sim/fem/material.hpp"
+#include "needle_sim/geometry/immersed_grid.hpp"
+#include "needle_sim/geometry/triangle_mesh.hpp"
 #include "needle_sim/solver/system_solver.hpp"
 
 namespace needle_sim {
@@ -21,11 +23,31 @@ struct BoxRegion {
   Vec3 max = Vec3::Zero();
 };
 
-// A region selecting grid nodes. Only boxes so far; spheres and surface patches follow.
+// A region selecting grid nodes (Dirichlet conditions, tractions): a box, a sphere, or the
+// nodes within `distance` of a surface patch (the triangles of a surface whose centroids
+// lie in `patch`, or all of them), as for the brainstem and optic-nerve clamps.
 struct Region {
+  enum class Kind { Box, Sphere, SurfaceDistance } kind = Kind::Box;
   BoxRegion box;
+  Vec3 center = Vec3::Zero();
+  double radius = 0;
+  std::shared_ptr<const TriangleMesh> surface;  // Kind::SurfaceDistance
+  std::vector<int> patch;                       // its triangles that count
+  double distance = 0;
+  Vec3 patch_min = Vec3::Zero(), patch_max = Vec3::Zero();  // bounds of the patch
+
   bool contains(const Vec3& p, double tol) const {
-    return ((p - box.min).array() >= -tol).all() && ((p - box.max).array() <= tol).all();
+    switch (kind) {
+      case Kind::Box:
+        return ((p - box.min).array() >= -tol).all() && ((p - box.max).array() <= tol).all();
+      case Kind::Sphere:
+        return (p - center).norm() <= radius + tol;
+      case Kind::SurfaceDistance:
+        if (((p - patch_min).array() < -(distance + tol)).any() || ((p - patch_max).array() > distance + tol).any())
+          return false;
+        return surface->distance(p, patch) <= distance + tol;
+    }
+    return false;
   }
 };
 
@@ -44,9 +66,15 @@ struct TractionLoad {
 };
 
 struct TissueGeometry {
-  enum class Kind { Box, Block } kind = Kind::Box;
+  enum class Kind { Box, Block, Surface } kind = Kind::Box;
   BoxRegion box;                 // Kind::Box
   std::array<Vec3, 8> corners{};  // Kind::Block, VTK hexahedron order
+  // Kind::Surface: a closed surface (file, loaded and transformed to metres) with a grid
+  // laid over it (immersed geometry).
+  std::string surface_file;
+  SurfaceTransform transform;
+  std::shared_ptr<const TriangleMesh> surface;
+  ImmersedGridSettings grid;
 };
 
 struct TissueScene {
@@ -98,6 +126,32 @@ struct ProbeScene {
   Vec3 point = Vec3::Zero();
 };
 
+// A tracked anatomical target: a point, or the centroid of a closed surface (e.g. the STN).
+struct TargetScene {
+  std::string name;
+  std::string key;
+  Vec3 point = Vec3::Zero();
+  std::shared_ptr<const TriangleMesh> surface;  // when given as a surface
+};
+
+// Quasi-static brain shift before the insertion (loss of CSF buoyancy): gravity acts on the
+// tissue above the CSF level (or all of it), clamps hold, and the brain stays inside the
+// skull: unilateral contact of the organ surface against the undeformed surface offset
+// outwards by `gap`, or against a rigid skull surface.
+struct BrainShiftScene {
+  Vec3 gravity = Vec3(0, 0, -9.81);
+  bool all = true;                      // the load acts on all of the tissue
+  Vec3 csf_point = Vec3::Zero();        // else above the plane through this point, normal to gravity
+  std::optional<double> density;        // default: the tissue's
+  double gap = 0.0;                     // skull offset from the undeformed surface [m]
+  std::shared_ptr<const TriangleMesh> skull;  // or a rigid skull surface
+  bool skull_contact = true;
+  std::optional<double> target_shift;   // scale the load so that `target` moves this far [m]
+  std::string target;                   // default: the first target
+  int load_steps = 4;
+  double tolerance = 1e-6;              // relative Newton residual per load step
+};
+
 struct Scene {
   std::string file;  // where it was loaded from ("" for scenes built in code)
   std::string name;
@@ -111,6 +165,8 @@ struct Scene {
   std::optional<InteractionSettings> interaction;
   std::optional<AdaptivitySettings> adaptivity;
   std::vector<ProbeScene> probes;
+  std::vector<TargetScene> targets;
+  std::optional<BrainShiftScene> brain_shift;
 
   long numSteps() const;
 };

@@ -4,12 +4,16 @@
 // thin drivers around this class.
 #include <memory>
 #include <string>
+#include <unordered_map>
 #include <vector>
 
 #include "needle_sim/adapt/mesh_adaptation.hpp"
 #include "needle_sim/adapt/spr_estimator.hpp"
 #include "needle_sim/contact/needle_tissue_interaction.hpp"
 #include "needle_sim/fem/embedded_point.hpp"
+#include "needle_sim/geometry/embedded_surface.hpp"
+#include "needle_sim/geometry/immersed_grid.hpp"
+#include "needle_sim/sim/brain_shift.hpp"
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/needle_body.hpp"
 #include "needle_sim/sim/tissue_body.hpp"
@@ -63,6 +67,23 @@ class Simulation {
   const std::string& probeName(int i) const { return scene_.probes[i].name; }
   Vec3 probeDisplacement(int i) const;
 
+  // Targets: material points tracked from the planning (rest) position.
+  int numTargets() const { return static_cast<int>(targets_.size()); }
+  const std::string& targetName(int i) const { return scene_.targets[i].name; }
+  Vec3 targetRest(int i) const { return targets_[i].rest; }
+  Vec3 targetPosition(int i) const;
+  // Position at step 0 (after the brain shift, if any).
+  const Vec3& targetStart(int i) const { return target_start_[i]; }
+  Vec3 targetVelocity(int i) const;
+  int findTarget(const std::string& name) const;
+
+  // Immersed geometry (nullptr for box / block tissue): the grid and the organ surface
+  // embedded in the current mesh.
+  const ImmersedGrid* immersedGrid() const { return immersed_.get(); }
+  const EmbeddedSurface* organSurface() const { return organ_.get(); }
+  // The brain-shift pre-step's outcome (done == false without a brain_shift section).
+  const BrainShiftResult& brainShift() const { return shift_result_; }
+
  private:
   void checkState() const;
   void adaptMesh();
@@ -70,12 +91,24 @@ class Simulation {
   // probes and constraint points re-embedded.
   void rebuildTissue();
   void embedProbes();
+  void embedTargets();
+  // Volume fractions of the active mesh's elements (immersed geometry), cached per cell.
+  void setFractions(HexMesh& mesh, const std::vector<int>& cells);
+  // Loads that outlive a mesh change: the brain shift's gravity and skull reactions.
+  void applyPersistentLoads();
 
   Scene scene_;
   std::unique_ptr<TissueBody> tissue_;
   std::vector<std::unique_ptr<NeedleBody>> needles_;
   std::unique_ptr<NeedleTissueInteraction> interaction_;
   std::vector<EmbeddedPoint> probes_;
+  std::vector<EmbeddedPoint> targets_;
+  std::vector<Vec3> target_start_;
+  std::unique_ptr<ImmersedGrid> immersed_;
+  std::unordered_map<int, double> cell_fraction_;  // forest cell -> inside fraction (not floored)
+  std::unique_ptr<EmbeddedSurface> organ_;
+  std::unique_ptr<BrainShift> shift_;
+  BrainShiftResult shift_result_;
   std::unique_ptr<MeshAdaptation> adaptation_;
   mutable std::unique_ptr<SprEstimator> estimator_;  // bound to the current tissue body
   mutable ErrorEstimate estimate_;

@@ -7,6 +7,7 @@
 //   (M + h C + h^2 K) dv = h ( f(x) + f_ext - h K v - C v ),   v += dv,   x += h v.
 // Static solve: Newton on the corotational forces, K(x) dx = f(x) + f_ext, to equilibrium.
 // Prescribed DOFs keep their position and zero velocity; they are not unknowns.
+#include <functional>
 #include <memory>
 #include <unordered_map>
 #include <vector>
@@ -82,6 +83,10 @@ class TissueBody {
   void addInverseColumns(const std::vector<int>& free_dofs, const VecX& c);
   // Newton to equilibrium; throws NumericalError when it does not converge.
   StepStats solveStatic();
+  // An extra conservative force field for a static solve: adds its force at x to f (3n)
+  // and its stiffness (-df/dx) as element blocks (replacing what K holds).
+  using ExtraForce = std::function<void(const VecX& x, VecX& f, ElementBlocks& K)>;
+  StepStats solveStatic(const ExtraForce& extra, double tolerance, int max_iterations);
 
   double kineticEnergy() const;
   double elasticEnergy() const { return model_->elasticEnergy(x_); }

@@ -12,6 +12,9 @@
 //    refreshed when CG needs more than `refresh_iterations`, every `refactor_every` calls if
 //    set, or when CG fails. The answer satisfies the same tolerance either way.
 #include <memory>
+#include <vector>
+
+#include <Eigen/StdVector>
 
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/fem/corotational_hex_model.hpp"
@@ -31,6 +34,17 @@ struct LinearSolverSettings {
   Ordering ordering = Ordering::Auto;
 };
 
+// Extra symmetric stiffness given per element as 24x24 blocks over the element's nodes
+// (e.g. the skull-contact penalty of the brain-shift pre-step); it keeps the sparsity pattern.
+struct ElementBlocks {
+  std::vector<int> element;
+  std::vector<hex8::Mat24, Eigen::aligned_allocator<hex8::Mat24>> K;
+  void clear() {
+    element.clear();
+    K.clear();
+  }
+};
+
 struct LinearSolveStats {
   int iterations = 0;           // CG iterations (0 for a direct solve)
   double relative_residual = 0;
@@ -48,6 +62,9 @@ class SystemSolver {
   LinearSolveStats solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x);
   // out = A v over the free DOFs, matrix-free.
   void apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const;
+  // Adds c_k * blocks to A until cleared (nullptr); the caller keeps them alive and
+  // invalidates the factor when they change.
+  void setExtraStiffness(const ElementBlocks* blocks) { extra_ = blocks; }
   // Forces a refactorisation at the next solve.
   void invalidate() { stale_ = true; }
 
@@ -65,6 +82,7 @@ class SystemSolver {
   bool stale_ = true;
   long calls_since_factor_ = 0;
   mutable VecX full_in_, full_out_;
+  const ElementBlocks* extra_ = nullptr;
 };
 
 }  // namespace needle_sim

@@ -193,9 +193,11 @@ ErrorEstimate SprEstimator::estimate(const VecX& x) const {
     const auto X = mesh.elementCorners(e);
     const Eigen::Matrix<double, 24, 1> u = corotatedDisplacement(x, e, R[e]);
     double eta2 = 0;
+    // Only the material part of an immersed cell counts (its volume fraction).
+    const double frac = mesh.fraction(e);
     for (int q = 0; q < 8; ++q) {
       const Mat3 J = X.transpose() * gt.grad[q];
-      const double detJ = J.determinant();
+      const double detJ = J.determinant() * frac;
       Stress star = Stress::Zero();
       for (int a = 0; a < 8; ++a) star += gt.shape[q][a] * est.recovered[el[a]];
       const Stress sh = rotate(R[e], D * (hex8::strainDisplacement(gt.grad[q] * J.inverse()) * u));

@@ -38,16 +38,16 @@ Mat3 frameFrom(const Vec3& d0) {
 }  // namespace
 
 NeedleTissueInteraction::NeedleTissueInteraction(const InteractionSettings& s, TissueBody& tissue,
-                                                 std::vector<NeedleBody*> needles)
+                                                 std::vector<NeedleBody*> needles, const EmbeddedSurface* organ)
     : settings_(s), needles_(std::move(needles)), tracks_(needles_.size()) {
-  bindTissue(tissue);
+  bindTissue(tissue, organ);
   for (size_t n = 0; n < needles_.size(); ++n) tracks_[n].sheathed = sheathOf(static_cast<int>(n)) >= 0;
 }
 
-void NeedleTissueInteraction::bindTissue(TissueBody& tissue) {
+void NeedleTissueInteraction::bindTissue(TissueBody& tissue, const EmbeddedSurface* organ) {
   tissue_ = &tissue;
   const HexMesh& mesh = tissue.mesh();
-  surface_ = std::make_unique<TissueSurface>(mesh);
+  surface_ = organ ? std::make_unique<TissueSurface>(mesh, *organ) : std::make_unique<TissueSurface>(mesh);
   rest_locator_ = std::make_unique<PointLocator>(mesh);
   column_of_.assign(tissue.dofs().numFree(), -1);
   node_elements_.assign(mesh.numNodes(), {});
@@ -55,12 +55,13 @@ void NeedleTissueInteraction::bindTissue(TissueBody& tissue) {
     for (int a : mesh.element(e)) node_elements_[a].push_back(e);
 }
 
-void NeedleTissueInteraction::rebind(TissueBody& tissue) {
-  bindTissue(tissue);
-  // Constraint points are material points: found again by their rest position.
+void NeedleTissueInteraction::rebind(TissueBody& tissue, const EmbeddedSurface* organ) {
+  bindTissue(tissue, organ);
+  // Constraint points are material points: found again by their rest position (a point of
+  // an immersed surface may lie a rounding error outside the cells: the nearest is taken).
   for (auto& c : constraints_) {
     EmbeddedPoint ep;
-    if (!rest_locator_->locate(c->tissue.rest, ep))
+    if (!rest_locator_->locate(c->tissue.rest, ep) && !rest_locator_->locateNearest(c->tissue.rest, ep))
       throw std::logic_error("re-embedding a constraint point: rest position outside the new mesh");
     c->tissue = ep;
   }

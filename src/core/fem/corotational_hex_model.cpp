@@ -14,11 +14,13 @@ namespace {
 
 // Key identifying an element's rest shape up to translation, quantised to 1e-10 of the
 // mesh size, so that identical grid cells share one reference.
-std::array<long long, 21> shapeKey(const Eigen::Matrix<double, 8, 3>& X, double quantum) {
-  std::array<long long, 21> k{};
+// The volume fraction (immersed geometry) is part of the key: it scales K0 and the volumes.
+std::array<long long, 22> shapeKey(const Eigen::Matrix<double, 8, 3>& X, double quantum, double fraction) {
+  std::array<long long, 22> k{};
   int c = 0;
   for (int a = 1; a < 8; ++a)
     for (int d = 0; d < 3; ++d) k[c++] = std::llround((X(a, d) - X(0, d)) / quantum);
+  k[c] = std::llround(fraction * 1e12);
   return k;
 }
 
@@ -55,19 +57,26 @@ void extractRotation(const Mat3& A, Eigen::Quaterniond& q) {
 
 CorotationalHexModel::CorotationalHexModel(const HexMesh& mesh, const LinearElasticMaterial& material)
     : mesh_(mesh), material_(material) {
-  std::map<std::array<long long, 21>, int> index;
+  std::map<std::array<long long, 22>, int> index;
   ref_of_.resize(mesh.numElements());
   nodal_volume_ = VecX::Zero(mesh.numNodes());
   const double quantum = 1e-10 * std::max((mesh.boundsMax() - mesh.boundsMin()).norm(), 1e-300);
   for (int e = 0; e < mesh.numElements(); ++e) {
     const auto X = mesh.elementCorners(e);
-    const auto key = shapeKey(X, quantum);
+    const double frac = mesh.fraction(e);
+    const auto key = shapeKey(X, quantum, frac);
     auto it = index.find(key);
     if (it == index.end()) {
       try {
         refs_.push_back(hex8::computeReference(X, material));
       } catch (const std::invalid_argument&) {
         throw std::invalid_argument("element " + std::to_string(e) + " is degenerate or inverted at rest");
+      }
+      if (frac != 1.0) {
+        auto& r = refs_.back();
+        r.K0 *= frac;
+        r.node_volume *= frac;
+        r.volume *= frac;
       }
       it = index.emplace(key, static_cast<int>(refs_.size()) - 1).first;
     }

@@ -50,4 +50,28 @@ bool PointLocator::locate(const Vec3& p, EmbeddedPoint& out) const {
   return false;
 }
 
+bool PointLocator::locateNearest(const Vec3& p, EmbeddedPoint& out) const {
+  const Vec3i c = binOf(p);
+  double best = 1e300;
+  for (int k = std::max(0, c[2] - 1); k <= std::min(dims_[2] - 1, c[2] + 1); ++k)
+    for (int j = std::max(0, c[1] - 1); j <= std::min(dims_[1] - 1, c[1] + 1); ++j)
+      for (int i = std::max(0, c[0] - 1); i <= std::min(dims_[0] - 1, c[0] + 1); ++i)
+        for (int e : bins_[binIndex({i, j, k})]) {
+          const auto X = mesh_.elementCorners(e);
+          Vec3 xi;
+          if (!hex8::inverseMap(X, p, xi)) continue;
+          xi = xi.cwiseMax(-1.0).cwiseMin(1.0);
+          const hex8::Vec8 w = hex8::shape(xi);
+          const double d = (X.transpose() * w - p).norm();
+          if (d < best) {
+            best = d;
+            out.rest = p;
+            out.element = e;
+            out.xi = xi;
+            out.weights = w;
+          }
+        }
+  return best < 1e300;
+}
+
 }  // namespace needle_sim

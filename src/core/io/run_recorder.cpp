@@ -39,7 +39,7 @@ RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, const Op
   fs::create_directories(dir_, ec);
   if (ec) throw std::runtime_error("cannot create output directory '" + dir_ + "': " + ec.message());
   for (const char* f : {"summary.json", "timeseries.csv", "timeseries.partial.csv", "centerline.csv",
-                        "centerline.partial.csv", "tissue.vtu"})
+                        "centerline.partial.csv", "tissue.vtu", "surface.vtp"})
     fs::remove(fs::path(dir_) / f, ec);
   if (centerline && sim.numNeedles() > 0) {
     centerline_.open(fs::path(dir_) / "centerline.partial.csv");
@@ -61,6 +61,12 @@ RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, const Op
     if (sim.interaction()) csv_ << ',' << n << "_state," << n << "_constraints";
   }
   if (sim.interaction()) csv_ << ",constraint_points,constraint_iterations,constraint_residual,constraint_ms";
+  // Targets: position, displacement from the planning (rest) position, distance to each tip.
+  for (int i = 0; i < sim.numTargets(); ++i) {
+    const auto& n = sim.targetName(i);
+    csv_ << ',' << n << "_x," << n << "_y," << n << "_z," << n << "_ux," << n << "_uy," << n << "_uz," << n << "_u";
+    for (int k = 0; k < sim.numNeedles(); ++k) csv_ << ',' << n << "_dist_" << sim.needle(k).name();
+  }
   if (estimate_) csv_ << ",eta_global,eta_max,eta_relative";
   if (const auto* a = sim.adaptation()) {
     csv_ << ",tissue_elements";
@@ -104,6 +110,16 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
   if (sim_.interaction())
     csv_ << ',' << s.constraint_points << ',' << s.constraint_iterations << ',' << s.constraint_residual << ','
          << s.constraint_ms;
+  for (int i = 0; i < sim_.numTargets(); ++i) {
+    const Vec3 p = sim_.targetPosition(i), u = p - sim_.targetRest(i);
+    csv_ << ',' << p[0] << ',' << p[1] << ',' << p[2] << ',' << u[0] << ',' << u[1] << ',' << u[2] << ',' << u.norm();
+    for (int k = 0; k < sim_.numNeedles(); ++k) {
+      const double d = (sim_.needle(k).tipPosition() - p).norm();
+      csv_ << ',' << d;
+      auto& m = min_target_distance_[sim_.targetName(i) + "/" + sim_.needle(k).name()];
+      m = std::min(m == 0 ? 1e300 : m, d);
+    }
+  }
   if (estimate_) {
     // With --error-estimate every step; otherwise (adaptivity) the last pass's estimate.
     const ErrorEstimate* est = options_.error_estimate ? &sim_.errorEstimate() : sim_.lastEstimate();
@@ -224,6 +240,52 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
     probes[sim_.probeName(i)] = {{"point", {p[0], p[1], p[2]}}, {"displacement", {u[0], u[1], u[2]}}, {"norm", u.norm()}};
   }
   j["probes"] = probes;
+  if (sim_.numTargets()) {
+    json targets = json::object();
+    for (int i = 0; i < sim_.numTargets(); ++i) {
+      const Vec3 p = sim_.targetPosition(i), r = sim_.targetRest(i), u = p - r;
+      json t = {{"planned", arr(r)},
+                {"position", arr(p)},
+                {"displacement", arr(u)},
+                {"displacement_norm", u.norm()},
+                {"motion_since_start", (p - sim_.targetStart(i)).norm()}};
+      for (int k = 0; k < sim_.numNeedles(); ++k) {
+        const std::string& nn = sim_.needle(k).name();
+        t["tip_distance"][nn] = (sim_.needle(k).tipPosition() - p).norm();
+        auto it = min_target_distance_.find(sim_.targetName(i) + "/" + nn);
+        if (it != min_target_distance_.end()) t["tip_distance_min"][nn] = it->second;
+      }
+      targets[sim_.targetName(i)] = t;
+    }
+    j["targets"] = targets;
+  }
+  if (const auto* g = sim_.immersedGrid()) {
+    j["immersed"] = {{"surface", scene.tissue.geometry.surface_file},
+                     {"surface_volume", scene.tissue.geometry.surface->volume()},
+                     {"grid_volume", g->volume()},
+                     {"grid_cells", {g->dims()[0], g->dims()[1], g->dims()[2]}},
+                     {"cell_size", arr(g->cellSize())},
+                     {"kept_cells", g->mesh().numElements()},
+                     {"defective_rays", g->insideTest().defectiveRays()}};
+  }
+  const auto& bs = sim_.brainShift();
+  if (bs.done) {
+    j["brain_shift"] = {{"load_scale", bs.load_scale},
+                        {"max_displacement", bs.max_displacement},
+                        {"load_solves", bs.load_solves},
+                        {"newton_iterations", bs.newton_iterations},
+                        {"multiplier_updates", bs.multiplier_updates},
+                        {"factorizations", bs.factorizations},
+                        {"skull_contacts", bs.contacts},
+                        {"skull_max_penetration", bs.max_penetration},
+                        {"skull_force", bs.skull_force},
+                        {"ms", bs.ms}};
+    if (!bs.target.empty()) {
+      j["brain_shift"]["target"] = bs.target;
+      j["brain_shift"]["target_displacement"] = arr(bs.target_displacement);
+      j["brain_shift"]["target_shift"] = bs.target_displacement.norm();
+    }
+  }
   const fs::path tmp = fs::path(dir_) / "summary.json.tmp";
   {
     std::ofstream out(tmp);
@@ -243,6 +305,11 @@ void RunRecorder::finish(double wall_s) {
     cells.eta = est.eta;
     cells.level = sim_.elementLevels();
     writeVtu((fs::path(dir_) / "tissue.vtu").string(), body.mesh(), body.positions(), cells);
+    if (const auto* organ = sim_.organSurface()) {
+      std::vector<Vec3> p;
+      organ->positions(body.positions(), p);
+      writeSurfaceVtp((fs::path(dir_) / "surface.vtp").string(), organ->rest(), p);
+    }
   }
   fs::rename(fs::path(dir_) / "timeseries.partial.csv", fs::path(dir_) / "timeseries.csv");
   if (centerline_.is_open()) {

@@ -30,6 +30,11 @@ void writeVtu(const std::string& path, const HexMesh& mesh, const VecX& x, const
     };
     if (!cells.von_mises.empty()) scalars("von_mises", cells.von_mises);
     if (!cells.eta.empty()) scalars("eta", cells.eta);
+    if (mesh.hasFractions()) {
+      std::vector<double> f(ne);
+      for (int e = 0; e < ne; ++e) f[e] = mesh.fraction(e);
+      scalars("volume_fraction", f);
+    }
     o << "<DataArray type=\"Int32\" Name=\"level\" format=\"ascii\">\n";
     for (int e = 0; e < ne; ++e) o << (cells.level.empty() ? 0 : cells.level[e]) << '\n';
     o << "</DataArray>\n</CellData>\n<Points>\n<DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n";
@@ -44,6 +49,33 @@ void writeVtu(const std::string& path, const HexMesh& mesh, const VecX& x, const
     o << "</DataArray>\n<DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n";
     for (int e = 0; e < ne; ++e) o << "12\n";  // VTK_HEXAHEDRON
     o << "</DataArray>\n</Cells>\n</Piece>\n</UnstructuredGrid>\n</VTKFile>\n";
+    if (!o) throw std::runtime_error("error writing " + tmp);
+  }
+  std::filesystem::rename(tmp, path);
+}
+
+void writeSurfaceVtp(const std::string& path, const TriangleMesh& rest, const std::vector<Vec3>& p) {
+  const std::string tmp = path + ".tmp";
+  {
+    std::ofstream o(tmp);
+    if (!o) throw std::runtime_error("cannot write " + tmp);
+    o << std::setprecision(10);
+    const int nv = rest.numVertices(), nt = rest.numTriangles();
+    o << "<?xml version=\"1.0\"?>\n<VTKFile type=\"PolyData\" version=\"0.1\" byte_order=\"LittleEndian\">\n<PolyData>\n"
+      << "<Piece NumberOfPoints=\"" << nv << "\" NumberOfPolys=\"" << nt << "\">\n";
+    o << "<PointData Vectors=\"displacement\">\n<DataArray type=\"Float64\" Name=\"displacement\" "
+         "NumberOfComponents=\"3\" format=\"ascii\">\n";
+    for (int i = 0; i < nv; ++i) {
+      const Vec3 u = p[i] - rest.vertex(i);
+      o << u[0] << ' ' << u[1] << ' ' << u[2] << '\n';
+    }
+    o << "</DataArray>\n</PointData>\n<Points>\n<DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n";
+    for (const auto& v : p) o << v[0] << ' ' << v[1] << ' ' << v[2] << '\n';
+    o << "</DataArray>\n</Points>\n<Polys>\n<DataArray type=\"Int32\" Name=\"connectivity\" format=\"ascii\">\n";
+    for (const auto& t : rest.triangles()) o << t[0] << ' ' << t[1] << ' ' << t[2] << '\n';
+    o << "</DataArray>\n<DataArray type=\"Int32\" Name=\"offsets\" format=\"ascii\">\n";
+    for (int t = 1; t <= nt; ++t) o << 3 * t << '\n';
+    o << "</DataArray>\n</Polys>\n</Piece>\n</PolyData>\n</VTKFile>\n";
     if (!o) throw std::runtime_error("error writing " + tmp);
   }
   std::filesystem::rename(tmp, path);

@@ -145,10 +145,100 @@ BoxRegion readBox(const Reader& r, const YAML::Node& n, const std::string& path)
   return b;
 }
 
-Region readRegion(const Reader& r, const YAML::Node& n, const std::string& path) {
-  r.checkKeys(n, path, {"box"});
+// A file named in the scene, relative to the scene file's folder.
+std::string resolvePath(const Reader& r, const std::string& name) {
+  if (name.empty() || name[0] == '/') return name;
+  const std::string& f = r.file();
+  const auto slash = f.find_last_of('/');
+  return slash == std::string::npos ? name : f.substr(0, slash + 1) + name;
+}
+
+// {scale, transform: {translation, rpy}} next to a surface file; `base` gives the defaults.
+SurfaceTransform readTransform(const Reader& r, const YAML::Node& n, const std::string& path,
+                               const SurfaceTransform& base = {}) {
+  SurfaceTransform t = base;
+  if (auto v = r.child(n, path, "scale", false)) {
+    t.scale = r.number(v, Reader::join(path, "scale"));
+    if (!(t.scale > 0)) r.fail(Reader::join(path, "scale"), "must be > 0, got " + Reader::fmt(t.scale));
+  }
+  if (auto tr = r.child(n, path, "transform", false)) {
+    const std::string p = Reader::join(path, "transform");
+    r.checkKeys(tr, p, {"translation", "rpy"});
+    t.translation = Vec3::Zero();
+    t.rotation = Mat3::Identity();
+    if (auto v = r.child(tr, p, "translation", false)) t.translation = r.vec3(v, p + ".translation");
+    if (auto v = r.child(tr, p, "rpy", false)) {
+      const Vec3 a = r.vec3(v, p + ".rpy");  // roll, pitch, yaw [rad], fixed axes x, y, z
+      t.rotation = (Eigen::AngleAxisd(a[2], Vec3::UnitZ()) * Eigen::AngleAxisd(a[1], Vec3::UnitY()) *
+                    Eigen::AngleAxisd(a[0], Vec3::UnitX()))
+                       .toRotationMatrix();
+    }
+  }
+  return t;
+}
+
+std::shared_ptr<const TriangleMesh> readSurfaceFile(const Reader& r, const YAML::Node& n, const std::string& key,
+                                                    const SurfaceTransform& t) {
+  const std::string name = r.string(n, key);
+  return std::make_shared<const TriangleMesh>(loadTriangleMesh(resolvePath(r, name), t, r.file(), key));
+}
+
+Vec3 centerOf(const Reader& r, const YAML::Node& n, const std::string& path, double& radius) {
+  r.checkKeys(n, path, {"center", "radius"});
+  const Vec3 c = r.vec3(r.child(n, path, "center", true), path + ".center");
+  radius = r.positive(n, path, "radius");
+  return c;
+}
+
+Region readRegion(const Reader& r, const YAML::Node& n, const std::string& path, const Scene* s = nullptr) {
+  r.checkKeys(n, path, {"box", "sphere", "surface_distance"});
+  const int given = (n["box"] ? 1 : 0) + (n["sphere"] ? 1 : 0) + (n["surface_distance"] ? 1 : 0);
+  if (given != 1) r.fail(path, "give exactly one of 'box', 'sphere', 'surface_distance'");
   Region reg;
-  reg.box = readBox(r, r.child(n, path, "box", true), path + ".box");
+  if (n["box"]) {
+    reg.box = readBox(r, n["box"], path + ".box");
+  } else if (n["sphere"]) {
+    reg.kind = Region::Kind::Sphere;
+    reg.center = centerOf(r, n["sphere"], path + ".sphere", reg.radius);
+  } else {
+    const std::string p = path + ".surface_distance";
+    const auto sd = n["surface_distance"];
+    r.checkKeys(sd, p, {"surface", "scale", "transform", "distance", "patch"});
+    reg.kind = Region::Kind::SurfaceDistance;
+    reg.distance = r.positive(sd, p, "distance");
+    const auto f = r.child(sd, p, "surface", true);
+    const bool organ = f.IsScalar() && f.Scalar() == "tissue";
+    if (organ) {
+      if (!s || !s->tissue.geometry.surface)
+        r.fail(p + ".surface", "'tissue' names the organ surface, but tissue.geometry has no surface");
+      if (sd["scale"] || sd["transform"]) r.fail(p, "'scale'/'transform' do not apply to the organ surface");
+      reg.surface = s->tissue.geometry.surface;
+    } else {
+      const SurfaceTransform base = s ? s->tissue.geometry.transform : SurfaceTransform{};
+      reg.surface = readSurfaceFile(r, f, p + ".surface", readTransform(r, sd, p, base));
+    }
+    Region patch;
+    bool has_patch = false;
+    if (auto pa = r.child(sd, p, "patch", false)) {
+      patch = readRegion(r, pa, p + ".patch", s);
+      if (patch.kind == Region::Kind::SurfaceDistance) r.fail(p + ".patch", "must be a 'box' or a 'sphere'");
+      has_patch = true;
+    }
+    const TriangleMesh& m = *reg.surface;
+    reg.patch_min = Vec3::Constant(1e300);
+    reg.patch_max = Vec3::Constant(-1e300);
+    for (int t = 0; t < m.numTriangles(); ++t) {
+      const auto& tr = m.triangle(t);
+      const Vec3 c = (m.vertex(tr[0]) + m.vertex(tr[1]) + m.vertex(tr[2])) / 3;
+      if (has_patch && !patch.contains(c, 0)) continue;
+      reg.patch.push_back(t);
+      for (int k : tr) {
+        reg.patch_min = reg.patch_min.cwiseMin(m.vertex(k));
+        reg.patch_max = reg.patch_max.cwiseMax(m.vertex(k));
+      }
+    }
+    if (reg.patch.empty()) r.fail(p + ".patch", "contains no triangle of the surface");
+  }
   return reg;
 }
 
@@ -221,10 +311,13 @@ void readSolver(const Reader& r, const YAML::Node& n, Scene& s) {
 void readTissue(const Reader& r, const YAML::Node& n, Scene& s) {
   r.checkKeys(n, "tissue", {"geometry", "grid", "material", "gravity", "body_force", "dirichlet", "tractions"});
   auto& T = s.tissue;
-  // geometry: exactly one of box / block
+  // geometry: exactly one of box / block / surface
   const auto g = r.child(n, "tissue", "geometry", true);
-  r.checkKeys(g, "tissue.geometry", {"box", "block"});
-  if (g["box"] && g["block"]) r.fail("tissue.geometry", "give either 'box' or 'block', not both");
+  r.checkKeys(g, "tissue.geometry", {"box", "block", "surface", "scale", "transform"});
+  const int kinds = (g["box"] ? 1 : 0) + (g["block"] ? 1 : 0) + (g["surface"] ? 1 : 0);
+  if (kinds > 1) r.fail("tissue.geometry", "give one of 'box', 'block' or 'surface', not several");
+  if (!g["surface"] && (g["scale"] || g["transform"]))
+    r.fail("tissue.geometry", "'scale' and 'transform' apply to a 'surface' only");
   if (g["box"]) {
     T.geometry.kind = TissueGeometry::Kind::Box;
     T.geometry.box = readBox(r, g["box"], "tissue.geometry.box");
@@ -237,19 +330,56 @@ void readTissue(const Reader& r, const YAML::Node& n, Scene& s) {
       r.fail("tissue.geometry.block.corners", "must be a list of 8 points (VTK hexahedron order)");
     for (int a = 0; a < 8; ++a)
       T.geometry.corners[a] = r.vec3(c[a], "tissue.geometry.block.corners[" + std::to_string(a) + "]");
+  } else if (g["surface"]) {
+    T.geometry.kind = TissueGeometry::Kind::Surface;
+    T.geometry.transform = readTransform(r, g, "tissue.geometry");
+    T.geometry.surface_file = resolvePath(r, r.string(g["surface"], "tissue.geometry.surface"));
+    T.geometry.surface = readSurfaceFile(r, g["surface"], "tissue.geometry.surface", T.geometry.transform);
   } else {
-    r.fail("tissue.geometry", "missing 'box' (or 'block')");
+    r.fail("tissue.geometry", "missing 'box', 'block' or 'surface'");
   }
   // grid
+  const bool immersed = T.geometry.kind == TissueGeometry::Kind::Surface;
   const auto grid = r.child(n, "tissue", "grid", true);
-  r.checkKeys(grid, "tissue.grid", {"cells"});
-  const auto cells = r.child(grid, "tissue.grid", "cells", true);
-  if (!cells.IsSequence() || cells.size() != 3) r.fail("tissue.grid.cells", "must be a list of 3 integers [nx, ny, nz]");
-  for (int d = 0; d < 3; ++d) {
-    const long long v = r.integer(cells[d], "tissue.grid.cells[" + std::to_string(d) + "]");
-    if (v < 1) r.fail("tissue.grid.cells", "every cell count must be >= 1, got " + std::to_string(v));
-    if (v > 100000) r.fail("tissue.grid.cells", "cell count " + std::to_string(v) + " is too large");
-    T.cells[d] = static_cast<int>(v);
+  if (immersed) r.checkKeys(grid, "tissue.grid", {"cells", "cell_size", "refine", "min_fraction", "samples"});
+  else r.checkKeys(grid, "tissue.grid", {"cells"});
+  if (immersed && grid["cells"] && grid["cell_size"]) r.fail("tissue.grid", "give either 'cells' or 'cell_size', not both");
+  if (immersed && !grid["cells"] && !grid["cell_size"]) r.fail("tissue.grid", "missing 'cells' (or 'cell_size')");
+  if (grid["cells"]) {
+    const auto cells = grid["cells"];
+    if (!cells.IsSequence() || cells.size() != 3) r.fail("tissue.grid.cells", "must be a list of 3 integers [nx, ny, nz]");
+    for (int d = 0; d < 3; ++d) {
+      const long long v = r.integer(cells[d], "tissue.grid.cells[" + std::to_string(d) + "]");
+      if (v < 1) r.fail("tissue.grid.cells", "every cell count must be >= 1, got " + std::to_string(v));
+      if (v > 100000) r.fail("tissue.grid.cells", "cell count " + std::to_string(v) + " is too large");
+      T.cells[d] = static_cast<int>(v);
+    }
+    if (immersed) T.geometry.grid.cells = T.cells;
+  } else if (!immersed) {
+    r.fail("tissue.grid.cells", "missing required key");
+  }
+  if (immersed) {
+    auto& G = T.geometry.grid;
+    if (grid["cell_size"]) G.cell_size = r.positive(grid, "tissue.grid", "cell_size");
+    if (auto v = r.child(grid, "tissue.grid", "refine", false)) {
+      const long long k = r.integer(v, "tissue.grid.refine");
+      if (k < 0 || k > 6) r.fail("tissue.grid.refine", "must be in [0, 6]");
+      G.refine = static_cast<int>(k);
+    }
+    if (auto v = r.child(grid, "tissue.grid", "min_fraction", false)) {
+      G.min_fraction = r.number(v, "tissue.grid.min_fraction");
+      if (!(G.min_fraction > 0 && G.min_fraction <= 1)) r.fail("tissue.grid.min_fraction", "must be in (0, 1]");
+    }
+    if (auto v = r.child(grid, "tissue.grid", "samples", false)) {
+      const long long k = r.integer(v, "tissue.grid.samples");
+      if (k < 1 || k > 64) r.fail("tissue.grid.samples", "must be in [1, 64]");
+      G.samples = static_cast<int>(k);
+    }
+    Vec3 origin, h;
+    ImmersedGrid::layout(T.geometry.surface->boundsMin(), T.geometry.surface->boundsMax(), G, T.cells, origin, h);
+    if (T.cells.cast<double>().prod() > 2e7)
+      r.fail(G.cells ? "tissue.grid.cells" : "tissue.grid.cell_size",
+             "gives a grid of " + Reader::fmt(T.cells.cast<double>().prod()) + " cells over the surface's box: too many");
   }
   const double need = estimateSolverBytes(T.cells);
   const double have = double(sysconf(_SC_PHYS_PAGES)) * double(sysconf(_SC_PAGE_SIZE));
@@ -277,7 +407,7 @@ void readTissue(const Reader& r, const YAML::Node& n, Scene& s) {
       r.checkKeys(d[i], p, {"region", "displacement", "components"});
       DirichletCondition dc;
       dc.key = p;
-      dc.region = readRegion(r, r.child(d[i], p, "region", true), p + ".region");
+      dc.region = readRegion(r, r.child(d[i], p, "region", true), p + ".region", &s);
       if (auto u = r.child(d[i], p, "displacement", false)) dc.displacement = r.vec3(u, p + ".displacement");
       if (auto c = r.child(d[i], p, "components", false)) {
         if (!c.IsSequence() || c.size() == 0 || c.size() > 3)
@@ -301,7 +431,7 @@ void readTissue(const Reader& r, const YAML::Node& n, Scene& s) {
       r.checkKeys(tr[i], p, {"region", "traction"});
       TractionLoad tl;
       tl.key = p;
-      tl.region = readRegion(r, r.child(tr[i], p, "region", true), p + ".region");
+      tl.region = readRegion(r, r.child(tr[i], p, "region", true), p + ".region", &s);
       tl.traction = r.vec3(r.child(tr[i], p, "traction", true), p + ".traction");
       T.tractions.push_back(tl);
     }
@@ -502,6 +632,90 @@ void readProbes(const Reader& r, const YAML::Node& n, Scene& s) {
   }
 }
 
+void readTargets(const Reader& r, const YAML::Node& n, Scene& s) {
+  if (!n.IsSequence()) r.fail("targets", "must be a list of {name, point} or {name, surface}");
+  static const std::regex ident("[A-Za-z0-9_]+");
+  std::set<std::string> names;
+  for (size_t i = 0; i < n.size(); ++i) {
+    const std::string p = "targets[" + std::to_string(i) + "]";
+    r.checkKeys(n[i], p, {"name", "point", "surface", "scale", "transform"});
+    TargetScene t;
+    t.key = p;
+    t.name = r.string(r.child(n[i], p, "name", true), p + ".name");
+    if (!std::regex_match(t.name, ident))
+      r.fail(p + ".name", "must be letters, digits and '_' only (it names CSV columns and frames), got '" + t.name + "'");
+    if (!names.insert(t.name).second) r.fail(p + ".name", "duplicate target name '" + t.name + "'");
+    if (n[i]["point"] && n[i]["surface"]) r.fail(p, "give either 'point' or 'surface', not both");
+    if (n[i]["point"]) {
+      if (n[i]["scale"] || n[i]["transform"]) r.fail(p, "'scale'/'transform' apply to a 'surface' only");
+      t.point = r.vec3(n[i]["point"], p + ".point");
+    } else if (n[i]["surface"]) {
+      // A target surface is in the organ's file frame unless it says otherwise.
+      const SurfaceTransform t0 = readTransform(r, n[i], p, s.tissue.geometry.transform);
+      t.surface = readSurfaceFile(r, n[i]["surface"], p + ".surface", t0);
+      t.point = t.surface->centroid();
+    } else {
+      r.fail(p, "missing 'point' (or 'surface')");
+    }
+    s.targets.push_back(t);
+  }
+}
+
+void readBrainShift(const Reader& r, const YAML::Node& n, Scene& s) {
+  const std::string p = "brain_shift";
+  r.checkKeys(n, p, {"gravity", "csf_level", "density", "skull", "target_shift", "target", "load_steps", "tolerance"});
+  BrainShiftScene b;
+  if (auto v = r.child(n, p, "gravity", false)) b.gravity = r.vec3(v, p + ".gravity");
+  if (!(b.gravity.norm() > 0)) r.fail(p + ".gravity", "must be a non-zero vector");
+  if (auto v = r.child(n, p, "csf_level", false)) {
+    if (v.IsScalar() && v.Scalar() == "all") {
+      b.all = true;
+    } else {
+      r.checkKeys(v, p + ".csf_level", {"point"});
+      b.all = false;
+      b.csf_point = r.vec3(r.child(v, p + ".csf_level", "point", true), p + ".csf_level.point");
+    }
+  }
+  if (n["density"]) b.density = r.positive(n, p, "density");
+  if (auto sk = r.child(n, p, "skull", false)) {
+    const std::string q = p + ".skull";
+    r.checkKeys(sk, q, {"gap", "surface", "scale", "transform", "enabled"});
+    if (auto v = r.child(sk, q, "enabled", false)) {
+      try {
+        b.skull_contact = v.as<bool>();
+      } catch (const YAML::Exception&) {
+        r.fail(q + ".enabled", "must be true or false");
+      }
+    }
+    if (sk["gap"] && sk["surface"]) r.fail(q, "give either 'gap' or 'surface', not both");
+    if (sk["gap"]) {
+      b.gap = r.number(sk["gap"], q + ".gap");
+      if (b.gap < 0) r.fail(q + ".gap", "must be >= 0");
+    }
+    if (sk["surface"]) b.skull = readSurfaceFile(r, sk["surface"], q + ".surface", readTransform(r, sk, q, s.tissue.geometry.transform));
+  }
+  if (n["target_shift"]) b.target_shift = r.positive(n, p, "target_shift");
+  if (auto v = r.child(n, p, "target", false)) b.target = r.string(v, p + ".target");
+  if (b.target_shift || !b.target.empty()) {
+    if (s.targets.empty()) r.fail(p + (b.target.empty() ? ".target_shift" : ".target"), "needs a target (the scene has none)");
+    if (b.target.empty()) b.target = s.targets.front().name;
+    bool found = false;
+    for (const auto& t : s.targets) found = found || t.name == b.target;
+    if (!found) r.fail(p + ".target", "no target named '" + b.target + "'");
+  }
+  if (auto v = r.child(n, p, "load_steps", false)) {
+    const long long k = r.integer(v, p + ".load_steps");
+    if (k < 1 || k > 1000) r.fail(p + ".load_steps", "must be in [1, 1000]");
+    b.load_steps = static_cast<int>(k);
+  }
+  if (n["tolerance"]) {
+    b.tolerance = r.positive(n, p, "tolerance");
+    if (b.tolerance >= 1) r.fail(p + ".tolerance", "must be < 1");
+  }
+  if (s.tissue.dirichlet.empty()) r.fail("tissue.dirichlet", "brain shift needs clamped regions that hold the brain");
+  s.brain_shift = b;
+}
+
 // Applies "a.b.c=value" to the tree, creating maps on the way; indices select list items.
 void applyOverride(YAML::Node root, const std::string& spec, const std::string& file) {
   const auto eq = spec.find('=');
@@ -556,7 +770,7 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
   if (!root.IsMap()) r.fail("", std::string("scene must be a YAML map at the top level, got ") + typeName(root));
   for (const auto& o : overrides) applyOverride(root, o, file);
   r.checkKeys(root, "", {"name", "description", "time", "solver", "tissue", "needle", "needles", "interaction", "adaptivity",
-                        "probes"});
+                        "probes", "targets", "brain_shift"});
   Scene s;
   s.file = file;
   if (auto v = r.child(root, "", "name", false)) s.name = r.string(v, "name");
@@ -576,6 +790,14 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
   if (auto v = r.child(root, "", "probes", false)) {
     if (!s.has_tissue) r.fail("probes", "probes are tissue points, but the scene has no tissue");
     readProbes(r, v, s);
+  }
+  if (auto v = r.child(root, "", "targets", false)) {
+    if (!s.has_tissue) r.fail("targets", "targets are tissue points, but the scene has no tissue");
+    readTargets(r, v, s);
+  }
+  if (auto v = r.child(root, "", "brain_shift", false)) {
+    if (!s.has_tissue) r.fail("brain_shift", "needs a tissue (the scene has none)");
+    readBrainShift(r, v, s);
   }
   if (s.has_tissue && s.solver.mode == SolverScene::Mode::Static && s.tissue.dirichlet.empty())
     r.fail("tissue.dirichlet", "static mode needs Dirichlet conditions that hold the body (none given)");

@@ -12,6 +12,7 @@ namespace needle_sim {
 HexMesh buildTissueMesh(const TissueScene& t) {
   if (t.geometry.kind == TissueGeometry::Kind::Box)
     return HexMesh::box(t.geometry.box.min, t.geometry.box.max, t.cells);
+  if (t.geometry.kind == TissueGeometry::Kind::Surface) return ImmersedGrid(t.geometry.surface, t.geometry.grid).mesh();
   return HexMesh::mappedBlock(t.geometry.corners, t.cells);
 }
 
@@ -19,26 +20,37 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
   for (const auto& n : scene.needles) needles_.push_back(std::make_unique<NeedleBody>(n, scene.solver));
   if (!scene.has_tissue) return;
   HexMesh mesh;
+  const bool immersed = scene.tissue.geometry.kind == TissueGeometry::Kind::Surface;
   try {
-    mesh = buildTissueMesh(scene.tissue);
+    if (immersed) {
+      immersed_ = std::make_unique<ImmersedGrid>(scene.tissue.geometry.surface, scene.tissue.geometry.grid);
+      mesh = immersed_->mesh();
+      for (int e = 0; e < mesh.numElements(); ++e) cell_fraction_[e] = immersed_->fraction(e);
+    } else {
+      mesh = buildTissueMesh(scene.tissue);
+    }
     if (scene.adaptivity) {
       // The tissue is numbered as the adaptive forest numbers its active mesh.
       adaptation_ = std::make_unique<MeshAdaptation>(*scene.adaptivity, mesh);
       mesh = adaptation_->active().mesh;
+      if (immersed) setFractions(mesh, adaptation_->active().cell);
     }
     tissue_ = std::make_unique<TissueBody>(std::move(mesh), scene.tissue, scene.solver, scene.file);
   } catch (const std::invalid_argument& e) {
     throw InputError(scene.file, "tissue.geometry", std::string("invalid mesh: ") + e.what());
   }
+  if (immersed) organ_ = std::make_unique<EmbeddedSurface>(scene.tissue.geometry.surface, tissue_->mesh());
   diag_ = (tissue_->mesh().boundsMax() - tissue_->mesh().boundsMin()).norm();
   embedProbes();
+  embedTargets();
   PointLocator locator(tissue_->mesh());
   // A needle must start outside the tissue: puncture happens on the surface.
   for (size_t n = 0; n < needles_.size(); ++n)
     for (int i = 0; i < needles_[n]->beam().numNodes(); ++i) {
       EmbeddedPoint ep;
       const Vec3& p = needles_[n]->state().p[i];
-      if (locator.locate(p, ep)) {
+      const bool inside = immersed ? immersed_->insideTest().inside(p) : locator.locate(p, ep);
+      if (inside) {
         std::ostringstream m;
         m << "the needle starts inside the tissue (node " << i << " at (" << p.transpose()
           << ")); place its tip outside the tissue surface";
@@ -48,8 +60,39 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
   if (scene.interaction) {
     std::vector<NeedleBody*> nd;
     for (auto& n : needles_) nd.push_back(n.get());
-    interaction_ = std::make_unique<NeedleTissueInteraction>(*scene.interaction, *tissue_, nd);
+    interaction_ = std::make_unique<NeedleTissueInteraction>(*scene.interaction, *tissue_, nd, organ_.get());
   }
+  if (scene.brain_shift) {
+    shift_ = std::make_unique<BrainShift>(*scene.brain_shift, scene.tissue, organ_.get());
+    const int t = scene.brain_shift->target.empty() ? -1 : findTarget(scene.brain_shift->target);
+    shift_result_ = shift_->apply(*tissue_, t >= 0 ? &targets_[t] : nullptr);
+    if (t >= 0) shift_result_.target = scene.brain_shift->target;
+    checkState();
+  }
+  for (int i = 0; i < numTargets(); ++i) target_start_.push_back(targetPosition(i));
+}
+
+void Simulation::setFractions(HexMesh& mesh, const std::vector<int>& cells) {
+  const RefinableHexMesh& forest = adaptation_->forest();
+  std::vector<double> f(mesh.numElements());
+  for (int e = 0; e < mesh.numElements(); ++e) {
+    auto it = cell_fraction_.find(cells[e]);
+    if (it == cell_fraction_.end()) {
+      // A child of a cell wholly inside is wholly inside; others are sampled.
+      const int parent = forest.parent(cells[e]);
+      auto pit = parent >= 0 ? cell_fraction_.find(parent) : cell_fraction_.end();
+      double frac;
+      if (pit != cell_fraction_.end() && pit->second >= 1.0) {
+        frac = 1.0;
+      } else {
+        const auto X = mesh.elementCorners(e);
+        frac = immersed_->boxFraction(X.colwise().minCoeff().transpose(), X.colwise().maxCoeff().transpose());
+      }
+      it = cell_fraction_.emplace(cells[e], frac).first;
+    }
+    f[e] = std::max(it->second, immersed_->settings().min_fraction);
+  }
+  mesh.setFractions(std::move(f));
 }
 
 void Simulation::embedProbes() {
@@ -57,13 +100,47 @@ void Simulation::embedProbes() {
   PointLocator locator(tissue_->mesh());
   for (size_t i = 0; i < scene_.probes.size(); ++i) {
     EmbeddedPoint ep;
-    if (!locator.locate(scene_.probes[i].point, ep)) {
+    const bool outside = immersed_ && !immersed_->insideTest().inside(scene_.probes[i].point);
+    if (outside || !locator.locate(scene_.probes[i].point, ep)) {
       std::ostringstream m;
       m << "point (" << scene_.probes[i].point.transpose() << ") lies outside the tissue";
       throw InputError(scene_.file, "probes[" + std::to_string(i) + "].point", m.str());
     }
     probes_.push_back(ep);
   }
+}
+
+void Simulation::embedTargets() {
+  targets_.clear();
+  PointLocator locator(tissue_->mesh());
+  for (const auto& t : scene_.targets) {
+    EmbeddedPoint ep;
+    const bool outside = immersed_ && !immersed_->insideTest().inside(t.point);
+    if (outside || !locator.locate(t.point, ep)) {
+      std::ostringstream m;
+      m << (t.surface ? "the surface's centroid" : "point") << " (" << t.point.transpose()
+        << ") lies outside the tissue" << (immersed_ ? " surface" : "");
+      throw InputError(scene_.file, t.key + (t.surface ? ".surface" : ".point"), m.str());
+    }
+    targets_.push_back(ep);
+  }
+}
+
+int Simulation::findTarget(const std::string& name) const {
+  for (int i = 0; i < numTargets(); ++i)
+    if (scene_.targets[i].name == name) return i;
+  return -1;
+}
+
+Vec3 Simulation::targetPosition(int i) const { return targets_[i].interpolate(tissue_->mesh(), tissue_->positions()); }
+
+Vec3 Simulation::targetVelocity(int i) const { return targets_[i].interpolate(tissue_->mesh(), tissue_->velocities()); }
+
+void Simulation::applyPersistentLoads() {
+  if (!shift_) return;
+  VecX f = shift_result_.load_scale * shift_->unitLoad(*tissue_);
+  if (organ_) f += shift_->skullLoad(*tissue_, *organ_);
+  tissue_->addExternalForce(f);
 }
 
 std::vector<int> Simulation::elementLevels() const {
@@ -87,10 +164,15 @@ void Simulation::rebuildTissue() {
   const auto& act = adaptation_->active();
   estimator_.reset();
   estimate_step_ = -1;
-  tissue_ = std::make_unique<TissueBody>(act.mesh, scene_.tissue, scene_.solver, scene_.file, act.hanging);
+  HexMesh mesh = act.mesh;
+  if (immersed_) setFractions(mesh, act.cell);
+  tissue_ = std::make_unique<TissueBody>(std::move(mesh), scene_.tissue, scene_.solver, scene_.file, act.hanging);
   tissue_->setState(x, v);
+  if (immersed_) organ_ = std::make_unique<EmbeddedSurface>(scene_.tissue.geometry.surface, tissue_->mesh());
+  applyPersistentLoads();
   embedProbes();
-  if (interaction_) interaction_->rebind(*tissue_);
+  embedTargets();
+  if (interaction_) interaction_->rebind(*tissue_, organ_.get());
 }
 
 AdaptationResult Simulation::refineElements(const std::vector<int>& elements) {

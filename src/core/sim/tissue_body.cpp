@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 
 #include "needle_sim/core/error.hpp"
 
@@ -193,22 +194,44 @@ StepStats TissueBody::freeMotion(double h) {
 }
 
 StepStats TissueBody::solveStatic() {
+  return solveStatic(ExtraForce{}, settings_.static_tolerance, settings_.static_max_iterations);
+}
+
+StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_iterations) {
   StepStats st;
-  const double tol = settings_.static_tolerance;
   VecX r_full, r, dx_free, dx;
+  ElementBlocks blocks;
   double ref = 0;
   {
     VecX fe;
     dofs_.gather(f_ext_, fe);
     ref = fe.norm();
   }
-  for (int it = 0; it <= settings_.static_max_iterations; ++it) {
-    auto t0 = std::chrono::steady_clock::now();
+  struct Detach {  // the solver must not keep a pointer to `blocks` past this call
+    SystemSolver& s;
+    ~Detach() {
+      s.setExtraStiffness(nullptr);
+      s.invalidate();
+    }
+  } detach{*solver_};
+  // Residual (free DOFs) at the current x_, with the extra terms' blocks.
+  auto residual = [&](VecX& out) {
     model_->updateRotations(x_);
     r_full = f_ext_;
     model_->addInternalForce(x_, r_full);
-    dofs_.gather(r_full, r);
-    const double rn = r.norm();
+    if (extra) {
+      blocks.clear();
+      extra(x_, r_full, blocks);
+    }
+    dofs_.gather(r_full, out);
+    return out.norm();
+  };
+  VecX x_trial, r_trial;
+  double rn = 0;
+  for (int it = 0; it <= max_iterations; ++it) {
+    auto t0 = std::chrono::steady_clock::now();
+    if (it == 0) rn = residual(r);
+    if (extra) solver_->setExtraStiffness(&blocks);
     if (it == 0) ref = std::max(ref, rn);
     st.forces_ms += msSince(t0);
     st.newton_residual = ref > 0 ? rn / ref : 0.0;
@@ -222,14 +245,35 @@ StepStats TissueBody::solveStatic() {
       v_.setZero();
       return st;
     }
-    if (it == settings_.static_max_iterations) break;
+    if (it == max_iterations) break;
     dx_free.setZero(r.size());
     const auto l = solver_->solve(mass_free_, 0.0, 1.0, r, dx_free);
     accumulate(st, l);
     dofs_.scatter(dx_free, dx);
-    x_ += dx;
+    t0 = std::chrono::steady_clock::now();
+    if (!extra) {
+      x_ += dx;
+      rn = residual(r);
+    } else {
+      // The extra terms (contact) switch on and off: a full step can overshoot into a far
+      // worse residual. Backtrack on the residual norm (a few cheap force evaluations save
+      // factorisations).
+      x_trial = x_;
+      double alpha = 1;
+      for (int k = 0; k < 6; ++k, alpha *= 0.5) {
+        x_ = x_trial + alpha * dx;
+        const double rt = residual(r_trial);
+        if (rt < rn || k == 5) {
+          rn = rt;
+          r.swap(r_trial);
+          break;
+        }
+      }
+      dx *= alpha;
+    }
+    st.forces_ms += msSince(t0);
   }
-  throw NumericalError(-1, "static solve did not converge in " + std::to_string(settings_.static_max_iterations) +
+  throw NumericalError(-1, "static solve did not converge in " + std::to_string(max_iterations) +
                                " Newton iterations (relative residual " + fmtSci(st.newton_residual) + ")");
 }
 

@@ -21,6 +21,15 @@ void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const Ve
   dofs_.scatter(v, full_in_);
   full_out_.setZero(dofs_.numFull());
   model_.addStiffnessProduct(full_in_, c_k, full_out_);
+  if (extra_) {
+    Eigen::Matrix<double, 24, 1> ve;
+    for (size_t i = 0; i < extra_->element.size(); ++i) {
+      const auto& el = model_.mesh().element(extra_->element[i]);
+      for (int a = 0; a < 8; ++a) ve.segment<3>(3 * a) = node3(full_in_, el[a]);
+      const Eigen::Matrix<double, 24, 1> w = extra_->K[i] * ve;
+      for (int a = 0; a < 8; ++a) node3(full_out_, el[a]) += c_k * w.segment<3>(3 * a);
+    }
+  }
   dofs_.gather(full_out_, out);
   out.array() += c_m * mass_free.array() * v.array();
 }
@@ -33,6 +42,8 @@ void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, Linea
     model_.elementStiffness(e, Ke);
     assembler_.addElement(e, Ke.data(), c_k);
   }
+  if (extra_)
+    for (size_t i = 0; i < extra_->element.size(); ++i) assembler_.addElement(extra_->element[i], extra_->K[i].data(), c_k);
   if (c_m != 0.0) assembler_.addDiagonal(mass_free, c_m);
   st.assemble_ms += msSince(t0);
   t0 = std::chrono::steady_clock::now();

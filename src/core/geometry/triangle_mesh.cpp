@@ -1,0 +1,213 @@
+#include "needle_sim/geometry/triangle_mesh.hpp"
+
+#include <assimp/Importer.hpp>
+#include <assimp/postprocess.h>
+#include <assimp/scene.h>
+
+#include <algorithm>
+#include <charconv>
+#include <cstdlib>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <map>
+#include <sstream>
+
+#include "needle_sim/core/error.hpp"
+
+namespace needle_sim {
+
+TriangleMesh::TriangleMesh(std::vector<Vec3> vertices, std::vector<Triangle> triangles)
+    : vertices_(std::move(vertices)), triangles_(std::move(triangles)) {
+  updateBounds();
+}
+
+void TriangleMesh::updateBounds() {
+  lo_ = Vec3::Constant(std::numeric_limits<double>::infinity());
+  hi_ = -lo_;
+  for (const auto& v : vertices_) {
+    lo_ = lo_.cwiseMin(v);
+    hi_ = hi_.cwiseMax(v);
+  }
+  if (vertices_.empty()) lo_ = hi_ = Vec3::Zero();
+}
+
+double TriangleMesh::volume() const {
+  double v = 0;
+  for (const auto& t : triangles_) v += vertices_[t[0]].dot(vertices_[t[1]].cross(vertices_[t[2]]));
+  return v / 6;
+}
+
+Vec3 TriangleMesh::centroid() const {
+  // Relative to the bounding-box centre, to avoid cancellation far from the origin.
+  const Vec3 o = 0.5 * (lo_ + hi_);
+  double v = 0;
+  Vec3 c = Vec3::Zero();
+  for (const auto& t : triangles_) {
+    const Vec3 a = vertices_[t[0]] - o, b = vertices_[t[1]] - o, d = vertices_[t[2]] - o;
+    const double w = a.dot(b.cross(d));  // 6 x the tetrahedron (o, a, b, d)
+    v += w;
+    c += w * (a + b + d) / 4;
+  }
+  return o + c / v;
+}
+
+double TriangleMesh::area() const {
+  double a = 0;
+  for (const auto& t : triangles_)
+    a += 0.5 * (vertices_[t[1]] - vertices_[t[0]]).cross(vertices_[t[2]] - vertices_[t[0]]).norm();
+  return a;
+}
+
+Vec3 TriangleMesh::normal(int t) const {
+  const auto& tr = triangles_[t];
+  return (vertices_[tr[1]] - vertices_[tr[0]]).cross(vertices_[tr[2]] - vertices_[tr[0]]).normalized();
+}
+
+void TriangleMesh::vertexNormals(std::vector<Vec3>& normals, std::vector<double>& areas) const {
+  normals.assign(vertices_.size(), Vec3::Zero());
+  areas.assign(vertices_.size(), 0.0);
+  for (const auto& t : triangles_) {
+    const Vec3 n2 = (vertices_[t[1]] - vertices_[t[0]]).cross(vertices_[t[2]] - vertices_[t[0]]);  // 2 A n
+    for (int k = 0; k < 3; ++k) {
+      normals[t[k]] += n2;
+      areas[t[k]] += n2.norm() / 6;
+    }
+  }
+  for (auto& n : normals) {
+    const double l = n.norm();
+    if (l > 0) n /= l;
+  }
+}
+
+long TriangleMesh::unmatchedEdges(std::array<int, 2>* example) const {
+  // Net count of directed edges per undirected edge: a->b counts +1, b->a counts -1.
+  std::map<std::pair<int, int>, int> net;
+  for (const auto& t : triangles_)
+    for (int k = 0; k < 3; ++k) {
+      const int a = t[k], b = t[(k + 1) % 3];
+      if (a < b) ++net[{a, b}];
+      else --net[{b, a}];
+    }
+  long bad = 0;
+  for (const auto& [e, n] : net)
+    if (n != 0) {
+      if (bad == 0 && example) *example = {e.first, e.second};
+      bad += std::abs(n);
+    }
+  return bad;
+}
+
+void TriangleMesh::flip() {
+  for (auto& t : triangles_) std::swap(t[1], t[2]);
+}
+
+void TriangleMesh::transform(const SurfaceTransform& t) {
+  for (auto& v : vertices_) v = t.apply(v);
+  if (t.scale * t.rotation.determinant() < 0) flip();
+  updateBounds();
+}
+
+Vec3 closestPointOnTriangle(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c) {
+  const Vec3 ab = b - a, ac = c - a, ap = p - a;
+  const double d1 = ab.dot(ap), d2 = ac.dot(ap);
+  if (d1 <= 0 && d2 <= 0) return a;
+  const Vec3 bp = p - b;
+  const double d3 = ab.dot(bp), d4 = ac.dot(bp);
+  if (d3 >= 0 && d4 <= d3) return b;
+  const double vc = d1 * d4 - d3 * d2;
+  if (vc <= 0 && d1 >= 0 && d3 <= 0) return a + ab * (d1 / (d1 - d3));
+  const Vec3 cp = p - c;
+  const double d5 = ab.dot(cp), d6 = ac.dot(cp);
+  if (d6 >= 0 && d5 <= d6) return c;
+  const double vb = d5 * d2 - d1 * d6;
+  if (vb <= 0 && d2 >= 0 && d6 <= 0) return a + ac * (d2 / (d2 - d6));
+  const double va = d3 * d6 - d5 * d4;
+  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)));
+  const double denom = 1 / (va + vb + vc);
+  return a + ab * (vb * denom) + ac * (vc * denom);
+}
+
+double TriangleMesh::distance(const Vec3& p, const std::vector<int>& subset) const {
+  double best = std::numeric_limits<double>::infinity();
+  auto visit = [&](int t) {
+    const auto& tr = triangles_[t];
+    best = std::min(best, (closestPointOnTriangle(p, vertices_[tr[0]], vertices_[tr[1]], vertices_[tr[2]]) - p).norm());
+  };
+  if (subset.empty())
+    for (int t = 0; t < numTriangles(); ++t) visit(t);
+  else
+    for (int t : subset) visit(t);
+  return best;
+}
+
+namespace {
+double widen(float f) {
+  char buf[64];
+  const auto r = std::to_chars(buf, buf + sizeof buf - 1, f);
+  *r.ptr = '\0';
+  return std::strtod(buf, nullptr);
+}
+}  // namespace
+
+TriangleMesh loadTriangleMesh(const std::string& path, const SurfaceTransform& t, const std::string& scene_file,
+                              const std::string& key) {
+  auto fail = [&](const std::string& problem) { throw InputError(scene_file, key, "'" + path + "': " + problem); };
+  if (!std::filesystem::is_regular_file(path)) fail("no such mesh file");
+  if (!std::ifstream(path)) fail("cannot open the mesh file");
+  Assimp::Importer importer;
+  // Faces are all we need; vertices with equal positions are welded so that edges match.
+  importer.SetPropertyInteger(AI_CONFIG_PP_RVC_FLAGS, aiComponent_NORMALS | aiComponent_TEXCOORDS | aiComponent_COLORS |
+                                                          aiComponent_MATERIALS | aiComponent_TANGENTS_AND_BITANGENTS);
+  const aiScene* sc = importer.ReadFile(path, aiProcess_Triangulate | aiProcess_RemoveComponent |
+                                                  aiProcess_JoinIdenticalVertices | aiProcess_PreTransformVertices |
+                                                  aiProcess_SortByPType);
+  if (!sc || !sc->mRootNode) fail(std::string("cannot read the mesh: ") + importer.GetErrorString());
+  std::vector<Vec3> V;
+  std::vector<Triangle> T;
+  std::map<std::array<double, 3>, int> weld;  // across the file's meshes
+  for (unsigned m = 0; m < sc->mNumMeshes; ++m) {
+    const aiMesh* mesh = sc->mMeshes[m];
+    std::vector<int> id(mesh->mNumVertices);
+    for (unsigned i = 0; i < mesh->mNumVertices; ++i) {
+      // assimp stores single precision; the shortest decimal of each float recovers what
+      // the file said (0.04, not 0.0399999991) whenever it had at most 7 digits.
+      const auto& v = mesh->mVertices[i];
+      const std::array<double, 3> k{widen(v.x), widen(v.y), widen(v.z)};
+      auto it = weld.find(k);
+      if (it == weld.end()) {
+        it = weld.emplace(k, static_cast<int>(V.size())).first;
+        V.emplace_back(k[0], k[1], k[2]);
+      }
+      id[i] = it->second;
+    }
+    for (unsigned f = 0; f < mesh->mNumFaces; ++f) {
+      const aiFace& face = mesh->mFaces[f];
+      if (face.mNumIndices != 3) continue;  // points and lines
+      const Triangle tr{id[face.mIndices[0]], id[face.mIndices[1]], id[face.mIndices[2]]};
+      if (tr[0] == tr[1] || tr[1] == tr[2] || tr[0] == tr[2]) continue;  // collapsed by welding
+      T.push_back(tr);
+    }
+  }
+  if (T.empty()) fail("contains no triangles");
+  for (const auto& v : V)
+    if (!v.allFinite()) fail("has non-finite vertex coordinates");
+  TriangleMesh mesh(std::move(V), std::move(T));
+  std::array<int, 2> e{};
+  const long open = mesh.unmatchedEdges(&e);
+  if (open > 0)
+  {
+    std::ostringstream m;
+    m << "not a closed surface: " << open
+      << " edges without a matching opposite edge (an open mesh or inconsistent orientation), e.g. the edge from ("
+      << mesh.vertex(e[0]).transpose() << ") to (" << mesh.vertex(e[1]).transpose() << ")";
+    fail(m.str());
+  }
+  mesh.transform(t);
+  if (mesh.volume() < 0) mesh.flip();
+  if (!(mesh.volume() > 0)) fail("encloses no volume");
+  return mesh;
+}
+
+}  // namespace needle_sim

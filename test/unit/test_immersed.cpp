@@ -1,0 +1,204 @@
+// Immersed organ geometry, targets and brain shift (DESIGN.md §2 "Immersed geometry", §4
+// "DBS"): closed surfaces from OBJ/STL/OFF, the winding-number inside test on the demo brain
+// (which has non-manifold edges), grid volume = surface volume, a box given as a surface
+// behaves as the box, and the brain-shift pre-step (zero load, linearity, skull contact).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <string>
+
+#include "needle_sim/core/blas_threads.hpp"
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/geometry/immersed_grid.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/simulation.hpp"
+
+using namespace needle_sim;
+
+namespace {
+const std::string kSrc = NEEDLE_SIM_SOURCE_DIR;
+const std::string kBrain = kSrc + "/data/brain/mni152_2009mini_largest.obj";
+const std::string kMeshes = kSrc + "/test/data/meshes/";
+
+std::shared_ptr<const TriangleMesh> load(const std::string& path, double scale = 1.0) {
+  SurfaceTransform t;
+  t.scale = scale;
+  return std::make_shared<const TriangleMesh>(loadTriangleMesh(path, t, "", "test"));
+}
+}  // namespace
+
+TEST(TriangleMesh, BoxInEveryFormatIsTheSameClosedSurface) {
+  for (const char* f : {"phantom_box.obj", "phantom_box.stl", "phantom_box.off"}) {
+    SCOPED_TRACE(f);
+    const auto m = load(kMeshes + f);
+    EXPECT_EQ(m->numVertices(), 8);
+    EXPECT_EQ(m->numTriangles(), 12);
+    EXPECT_EQ(m->unmatchedEdges(), 0);
+    EXPECT_NEAR(m->volume(), 0.04 * 0.02 * 0.02, 1e-18);
+    EXPECT_LT((m->centroid() - Vec3(0.02, 0.01, 0.01)).norm(), 1e-15);
+  }
+}
+
+TEST(TriangleMesh, DemoBrainIsClosedDespiteNonManifoldEdges) {
+  const auto m = load(kBrain, 1e-3);
+  EXPECT_EQ(m->unmatchedEdges(), 0);
+  EXPECT_GT(m->numTriangles(), 50000);
+  EXPECT_NEAR(m->volume(), 1.5327e-3, 1e-6);  // m^3 (1.53 L)
+}
+
+TEST(TriangleMesh, TransformScalesRotatesAndKeepsOrientation) {
+  SurfaceTransform t;
+  t.scale = 2;
+  t.rotation = Eigen::AngleAxisd(0.5, Vec3(1, 2, 3).normalized()).toRotationMatrix();
+  t.translation = Vec3(1, -2, 3);
+  const TriangleMesh m = loadTriangleMesh(kMeshes + "phantom_box.obj", t, "", "test");
+  EXPECT_NEAR(m.volume(), 8 * 0.04 * 0.02 * 0.02, 1e-15);
+  EXPECT_LT((m.centroid() - t.apply(Vec3(0.02, 0.01, 0.01))).norm(), 1e-12);
+}
+
+TEST(InsideTest, BrainPointsAndRaysAgreeWithTheSurface) {
+  const auto m = load(kBrain, 1e-3);
+  InsideTest in(m);
+  EXPECT_TRUE(in.inside(Vec3(-0.0111, -0.0129, -0.0077)));  // left STN
+  EXPECT_TRUE(in.inside(Vec3(0.0108, -0.0122, -0.0078)));   // right STN
+  EXPECT_TRUE(in.inside(Vec3(-0.03, -0.02, 0.02)));  // left white matter
+  EXPECT_FALSE(in.inside(Vec3(0.0, -0.02, 0.03)));    // the interhemispheric fissure
+  EXPECT_FALSE(in.inside(Vec3(-0.030, 0.020, 0.062)));  // the burr-hole entry, 12 mm outside
+  EXPECT_FALSE(in.inside(Vec3(0, 0, 0.2)));
+  EXPECT_FALSE(in.inside(Vec3(0, 0.072, -0.07)));  // below the frontal lobes, inside the box
+  // A vertical ray's inside length through the whole brain equals the sum of its intervals:
+  // crossings pair up (no defect) on a ray through the middle.
+  const double len = in.insideLength(-0.03, -0.02, -1, 1);
+  EXPECT_GT(len, 0.05);
+  EXPECT_LT(len, 0.155);
+  EXPECT_EQ(in.defectiveRays(), 0);
+}
+
+TEST(ImmersedGrid, SphereVolumeWithinHalfAPercent) {
+  const auto m = load(kMeshes + "sphere.obj");
+  // The polyhedron's volume is a little below the sphere's; the grid must match the mesh.
+  EXPECT_NEAR(m->volume(), 4.0 / 3 * M_PI * 1e-6, 0.01 * 4.0 / 3 * M_PI * 1e-6);
+  for (int n : {4, 8, 16}) {
+    ImmersedGridSettings s;
+    s.cells = Vec3i(n, n, n);
+    ImmersedGrid g(m, s);
+    SCOPED_TRACE(n);
+    EXPECT_NEAR(g.volume(), m->volume(), 0.005 * m->volume());
+    EXPECT_EQ(g.insideTest().defectiveRays(), 0);
+    // The grid's box is the sphere's: the 8 corner cells hold only a sliver.
+    EXPECT_LE(g.mesh().numElements(), n * n * n);
+  }
+}
+
+TEST(ImmersedGrid, DemoBrainVolumeWithinOnePercent) {
+  const auto m = load(kBrain, 1e-3);
+  for (double h : {0.016, 0.008}) {
+    SCOPED_TRACE(h);
+    ImmersedGridSettings s;
+    s.cell_size = h;
+    ImmersedGrid g(m, s);
+    EXPECT_NEAR(g.volume(), m->volume(), 0.01 * m->volume());
+    // Every surface vertex lies in a kept cell (they are embedded for contact and display).
+    PointLocator loc(g.mesh());
+    int missing = 0;
+    for (const auto& v : m->vertices()) {
+      EmbeddedPoint ep;
+      missing += !loc.locate(v, ep);
+    }
+    EXPECT_EQ(missing, 0);
+  }
+}
+
+TEST(ImmersedGrid, BoxGivenAsSurfaceGivesTheSameResultsAsTheBox) {
+  const std::string phantom = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml";
+  Scene a = loadScene(phantom, {"time.duration=1.0"});
+  Scene b = loadScene(phantom, {"time.duration=1.0", "tissue.geometry={surface: " + kMeshes + "phantom_box.obj}"});
+  ASSERT_EQ(b.tissue.geometry.kind, TissueGeometry::Kind::Surface);
+  Simulation sa(a), sb(b);
+  ASSERT_EQ(sa.tissue().mesh().numElements(), sb.tissue().mesh().numElements());
+  ASSERT_EQ(sa.tissue().mesh().numNodes(), sb.tissue().mesh().numNodes());
+  for (int e = 0; e < sb.tissue().mesh().numElements(); ++e) ASSERT_NEAR(sb.tissue().mesh().fraction(e), 1.0, 1e-12);
+  for (long k = 0; k < a.numSteps(); ++k) {
+    sa.step();
+    sb.step();
+  }
+  ASSERT_GT(sa.interaction()->activePoints(0), 1);  // the needle went in
+  EXPECT_EQ(sa.interaction()->activePoints(0), sb.interaction()->activePoints(0));
+  double umax = 0;
+  for (int i = 0; i < sa.numProbes(); ++i) umax = std::max(umax, sa.probeDisplacement(i).norm());
+  ASSERT_GT(umax, 1e-7);
+  for (int i = 0; i < sa.numProbes(); ++i)
+    EXPECT_LT((sa.probeDisplacement(i) - sb.probeDisplacement(i)).norm(), 1e-6 * umax) << sa.probeName(i);
+  EXPECT_LT((sa.needle(0).tipPosition() - sb.needle(0).tipPosition()).norm(), 1e-9);
+}
+
+namespace {
+// The brain with its STNs, brainstem clamp, and a brain-shift section (no needles).
+Scene shiftScene(const std::string& shift) {
+  const std::string text = R"(
+name: brain_shift_test
+time: {dt: 0.01, duration: 0.05}
+tissue:
+  geometry: {surface: ../../data/brain/mni152_2009mini_largest.obj, scale: 0.001}
+  grid: {cell_size: 0.016}
+  material: {young: 6000.0, poisson: 0.45, density: 1040.0}
+  dirichlet:
+    - region: {surface_distance: {surface: tissue, distance: 0.008,
+                                  patch: {sphere: {center: [0.0, -0.042, -0.072], radius: 0.015}}}}
+targets:
+  - {name: STN_L, surface: ../../data/brain/cit168_stn_L.obj}
+  - {name: deep, point: [-0.01, -0.02, 0.01]}
+brain_shift: )" + shift + "\n";
+  return parseScene(text, kSrc + "/config/scenes/brain_shift_test.yaml");
+}
+}  // namespace
+
+TEST(BrainShift, TargetsAreEmbeddedAtTheirCentroids) {
+  Simulation sim(shiftScene("{gravity: [0, -9.81, 0], csf_level: {point: [0, 1.0, 0]}}"));
+  ASSERT_EQ(sim.numTargets(), 2);
+  EXPECT_LT((sim.targetRest(0) - Vec3(-0.0111, -0.0129, -0.0077)).norm(), 5e-4);  // CIT168 STN_L centroid
+  EXPECT_EQ(sim.targetRest(1), Vec3(-0.01, -0.02, 0.01));
+}
+
+TEST(BrainShift, ZeroLoadGivesZeroShift) {
+  // The CSF level above the whole brain: nothing loses buoyancy.
+  Simulation sim(shiftScene("{gravity: [0, -9.81, 0], csf_level: {point: [0, 1.0, 0]}, skull: {gap: 0.002}}"));
+  ASSERT_TRUE(sim.brainShift().done);
+  EXPECT_EQ(sim.brainShift().max_displacement, 0.0);
+  EXPECT_LT((sim.targetPosition(0) - sim.targetRest(0)).norm(), 1e-15);  // interpolation round-off
+}
+
+TEST(BrainShift, ShiftIsLinearInSmallLoads) {
+  setBlasThreads(1);
+  Simulation a(shiftScene("{gravity: [0, -0.001, 0], csf_level: {point: [0, 0, 0]}, skull: {enabled: false}}"));
+  Simulation b(shiftScene("{gravity: [0, -0.002, 0], csf_level: {point: [0, 0, 0]}, skull: {enabled: false}}"));
+  const Vec3 ua = a.targetPosition(0) - a.targetRest(0), ub = b.targetPosition(0) - b.targetRest(0);
+  ASSERT_GT(ua.norm(), 1e-7);
+  EXPECT_LT((ub - 2 * ua).norm(), 0.01 * ub.norm());
+  // The shifted brain is an equilibrium: dynamic steps from it leave the targets where they are.
+  for (int k = 0; k < 5; ++k) b.step();
+  EXPECT_LT((b.targetPosition(0) - (b.targetRest(0) + ub)).norm(), 1e-3 * ub.norm());
+}
+
+TEST(BrainShift, BrainStaysInsideTheSkullAndTheShiftIsScaledToTheTarget) {
+  setBlasThreads(1);
+  const double gap = 0.004;
+  Simulation sim(shiftScene("{gravity: [0, -9.81, 0], csf_level: {point: [0, 0, 0]}, skull: {gap: " +
+                            std::to_string(gap) + "}, target_shift: 0.003, target: STN_L}"));
+  const auto& r = sim.brainShift();
+  EXPECT_GT(r.contacts, 0);
+  EXPECT_LE(r.max_penetration, 1e-3 * gap);
+  EXPECT_NEAR(r.target_displacement.norm(), 0.003, 0.003 * 1e-2);
+  EXPECT_NEAR((sim.targetPosition(0) - sim.targetRest(0)).norm(), 0.003, 0.003 * 1e-2);
+  // Every surface vertex against its skull plane: n . u <= gap (to the tolerance).
+  const auto* organ = sim.organSurface();
+  std::vector<Vec3> n;
+  std::vector<double> area;
+  organ->rest().vertexNormals(n, area);
+  std::vector<Vec3> p;
+  organ->positions(sim.tissue().positions(), p);
+  double worst = -1;
+  for (int v = 0; v < organ->rest().numVertices(); ++v) worst = std::max(worst, n[v].dot(p[v] - organ->rest().vertex(v)) - gap);
+  EXPECT_LE(worst, 1e-3 * gap);
+  EXPECT_GT(worst, -1e-3 * gap);  // and it touches
+}
