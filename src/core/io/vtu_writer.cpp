@@ -8,12 +8,24 @@
 
 namespace needle_sim {
 
-void writeVtu(const std::string& path, const HexMesh& mesh, const VecX& x, const VtuCellData& cells) {
+namespace {
+// Writes through a temporary file renamed into place, so a reader never sees half a file.
+template <class Body>
+void writeAtomically(const std::string& path, Body body) {
   const std::string tmp = path + ".tmp";
   {
     std::ofstream o(tmp);
     if (!o) throw std::runtime_error("cannot write " + tmp);
     o << std::setprecision(10);
+    body(o);
+    if (!o) throw std::runtime_error("error writing " + tmp);
+  }
+  std::filesystem::rename(tmp, path);
+}
+}  // namespace
+
+void writeVtu(const std::string& path, const HexMesh& mesh, const VecX& x, const VtuCellData& cells) {
+  writeAtomically(path, [&](std::ofstream& o) {
     const int nn = mesh.numNodes(), ne = mesh.numElements();
     o << "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
       << "<UnstructuredGrid>\n<Piece NumberOfPoints=\"" << nn << "\" NumberOfCells=\"" << ne << "\">\n";
@@ -49,17 +61,11 @@ void writeVtu(const std::string& path, const HexMesh& mesh, const VecX& x, const
     o << "</DataArray>\n<DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n";
     for (int e = 0; e < ne; ++e) o << "12\n";  // VTK_HEXAHEDRON
     o << "</DataArray>\n</Cells>\n</Piece>\n</UnstructuredGrid>\n</VTKFile>\n";
-    if (!o) throw std::runtime_error("error writing " + tmp);
-  }
-  std::filesystem::rename(tmp, path);
+  });
 }
 
 void writeSurfaceVtp(const std::string& path, const TriangleMesh& rest, const std::vector<Vec3>& p) {
-  const std::string tmp = path + ".tmp";
-  {
-    std::ofstream o(tmp);
-    if (!o) throw std::runtime_error("cannot write " + tmp);
-    o << std::setprecision(10);
+  writeAtomically(path, [&](std::ofstream& o) {
     const int nv = rest.numVertices(), nt = rest.numTriangles();
     o << "<?xml version=\"1.0\"?>\n<VTKFile type=\"PolyData\" version=\"0.1\" byte_order=\"LittleEndian\">\n<PolyData>\n"
       << "<Piece NumberOfPoints=\"" << nv << "\" NumberOfPolys=\"" << nt << "\">\n";
@@ -76,9 +82,7 @@ void writeSurfaceVtp(const std::string& path, const TriangleMesh& rest, const st
     o << "</DataArray>\n<DataArray type=\"Int32\" Name=\"offsets\" format=\"ascii\">\n";
     for (int t = 1; t <= nt; ++t) o << 3 * t << '\n';
     o << "</DataArray>\n</Polys>\n</Piece>\n</PolyData>\n</VTKFile>\n";
-    if (!o) throw std::runtime_error("error writing " + tmp);
-  }
-  std::filesystem::rename(tmp, path);
+  });
 }
 
 }  // namespace needle_sim

@@ -13,6 +13,12 @@ namespace {
 // Penalty per unit area, in units of (tissue E / cell size). Larger needs fewer multiplier
 // updates but more Newton iterations as contacts switch; 3e3 was fastest on the DBS scene.
 constexpr double kPenalty = 3e3;
+
+// Size of the (coarse) grid's first cell: the length scale of the penalty and tolerances.
+double cellSize(const HexMesh& mesh) {
+  const Eigen::Matrix<double, 8, 3> X = mesh.elementCorners(0);
+  return (X.colwise().maxCoeff() - X.colwise().minCoeff()).maxCoeff();
+}
 }  // namespace
 
 BrainShift::BrainShift(const BrainShiftScene& scene, const TissueScene& tissue, const EmbeddedSurface* organ)
@@ -46,8 +52,7 @@ BrainShift::BrainShift(const BrainShiftScene& scene, const TissueScene& tissue, 
   // Penalty ~ kPenalty x the stiffness of a cell of tissue per unit area of surface: large
   // enough for the multiplier updates to converge in a few passes, small enough for Newton.
   const double E = tissue.material.young;
-  const Eigen::Matrix<double, 8, 3> X0 = organ_->mesh().elementCorners(0);
-  const double cell = (X0.colwise().maxCoeff() - X0.colwise().minCoeff()).maxCoeff();
+  const double cell = cellSize(organ_->mesh());
   k_.resize(m.numVertices());
   for (int v = 0; v < m.numVertices(); ++v) k_[v] = kPenalty * E / cell * area[v];
   lambda_.assign(m.numVertices(), 0.0);
@@ -116,9 +121,7 @@ BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target
     for (size_t v = 0; v < lambda_.size(); ++v) rest_[v] = organ_->vertex(static_cast<int>(v)).interpolate(body.mesh(), X);
   }
   const bool with_contact = !lambda_.empty();
-  const Eigen::Matrix<double, 8, 3> X0 = body.mesh().elementCorners(0);
-  const double cell = (X0.colwise().maxCoeff() - X0.colwise().minCoeff()).maxCoeff();
-  const double pen_tol = 1e-3 * std::max(scene_.gap, 1e-3 * cell);  // 0.1 % of the gap
+  const double pen_tol = 1e-3 * std::max(scene_.gap, 1e-3 * cellSize(body.mesh()));  // 0.1 % of the gap
   TissueBody::ExtraForce extra;
   if (with_contact) extra = [this, &body](const VecX& x, VecX& f, ElementBlocks& K) { contact(body, x, f, K); };
 
