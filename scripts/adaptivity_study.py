@@ -13,12 +13,9 @@ Sample run (about 4 minutes on the 2-core machine, most of it the 32x16x16 refer
 writes results/adaptivity_study/{study.csv, study.md, runtime_vs_error.png} and one run
 directory per configuration (kept: --reuse skips runs whose summary.json says ok).
 """
-import argparse
 import csv
-import json
 import math
 import os
-import subprocess
 import sys
 
 import matplotlib
@@ -26,9 +23,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-SCENES = os.path.join(ROOT, "config", "scenes")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from study_runs import SCENES, parse_args, run_all  # noqa: E402
+
 
 # name, scene file, overrides
 RUNS = [
@@ -44,10 +41,6 @@ RUNS = [
 REFERENCE = "uniform 32x16x16"
 
 
-def slug(name):
-    return "".join(c if c.isalnum() else "_" for c in name).strip("_")
-
-
 def probe_series(run_dir):
     with open(os.path.join(run_dir, "timeseries.csv"), newline="") as f:
         rows = list(csv.DictReader(f))
@@ -57,31 +50,11 @@ def probe_series(run_dir):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default=os.path.join(ROOT, "results", "adaptivity_study"))
-    ap.add_argument("--tool", default=os.path.join(ROOT, "build", "devel", "lib", "needle_sim", "needle_sim"))
-    ap.add_argument("--reuse", action="store_true", help="keep runs whose summary.json says ok")
-    args = ap.parse_args()
-    if not os.access(args.tool, os.X_OK):
-        sys.exit(f"adaptivity_study: no needle_sim tool at {args.tool} (build first: bash scripts/test.sh)")
-    os.makedirs(args.out, exist_ok=True)
+    args = parse_args(__doc__, "adaptivity_study")
 
     results = {}
-    for name, scene, sets in RUNS:
-        d = os.path.join(args.out, slug(name))
-        summary_path = os.path.join(d, "summary.json")
-        ok = False
-        if args.reuse and os.path.exists(summary_path):
-            with open(summary_path) as f:
-                ok = json.load(f).get("status") == "ok"
-        if not ok:
-            cmd = [args.tool, "run", os.path.join(SCENES, scene), "--out", d, "--quiet"]
-            for s in sets:
-                cmd += ["--set", s]
-            print("+", " ".join(cmd), flush=True)
-            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-        with open(summary_path) as f:
-            summary = json.load(f)
+    for name, (summary, d, _) in run_all(args.tool, SCENES, args.out, [(n, sc, [a for x in sets for a in ("--set", x)])
+                                                                        for n, sc, sets in RUNS], args.reuse).items():
         rows, series = probe_series(d)
         results[name] = (summary, rows, series)
 

@@ -2,10 +2,12 @@
 //   rosrun needle_sim needle_sim_node _scene:=$(rospack find needle_sim)/config/scenes/phantom_insertion_8x4x4.yaml
 #include <ros/ros.h>
 
+#include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/ros/simulator_ros.hpp"
 
 int main(int argc, char** argv) {
+  needle_sim::limitOpenMpThreads(argv);
   ros::init(argc, argv, "needle_sim");
   ros::NodeHandle nh, pnh("~");
   try {

@@ -4,6 +4,8 @@
 #include <cmath>
 #include <limits>
 
+#include <geometry_msgs/PointStamped.h>
+#include <geometry_msgs/TransformStamped.h>
 #include <geometry_msgs/WrenchStamped.h>
 #include <nav_msgs/Path.h>
 #include <sensor_msgs/PointCloud2.h>
@@ -13,6 +15,7 @@
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/error.hpp"
 #include <needle_sim/SimStatus.h>
+#include <needle_sim/TargetState.h>
 #include "needle_sim/scene/scene_loader.hpp"
 
 namespace needle_sim {
@@ -94,6 +97,9 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   cloud_pub_ = nh_.advertise<sensor_msgs::PointCloud2>("tissue/deformation", 2);
   surface_pub_ = nh_.advertise<visualization_msgs::Marker>("tissue/surface", 2);
   error_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("tissue/error_markers", 2);
+  target_pub_ = nh_.advertise<geometry_msgs::PointStamped>("target", 10);
+  target_state_pub_ = nh_.advertise<needle_sim::TargetState>("target/state", 50);
+  tf_broadcaster_ = std::make_unique<tf2_ros::TransformBroadcaster>();
   updater_ = std::make_unique<diagnostic_updater::Updater>(nh_, pnh_);
   updater_->setHardwareID("needle_sim/" + scene_.name);
   updater_->add("simulation", this, &SimulatorRos::diagnose);
@@ -111,6 +117,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
     }
   }
   reset_srv_ = nh_.advertiseService("reset", &SimulatorRos::onReset, this);
+  set_target_srv_ = nh_.advertiseService("set_target", &SimulatorRos::onSetTarget, this);
   thread_ = std::thread(&SimulatorRos::worker, this);
   if (!as_fast_) timer_ = nh_.createTimer(ros::Duration(scene_.dt), &SimulatorRos::onTimer, this);
   ROS_INFO("needle_sim: scene '%s' (%s), %d DOFs, dt %g s, commands from %s", scene_.name.c_str(), scene_file_.c_str(),
@@ -289,8 +296,25 @@ bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Respo
     return true;
   }
   overruns_ = rejected_ = clamped_ = 0;
+  primary_target_ = 0;
   res.success = true;
   res.message = "reset to the initial state of scene '" + scene_.name + "'";
+  return true;
+}
+
+bool SimulatorRos::onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::SetTarget::Response& res) {
+  std::lock_guard<std::mutex> lk(sim_mutex_);
+  const Vec3 p(req.point.x, req.point.y, req.point.z);
+  try {
+    primary_target_ = sim_->setTarget(req.name, p);
+  } catch (const std::exception& e) {
+    res.success = false;
+    res.message = e.what();
+    ROS_WARN("needle_sim: set_target rejected: %s", e.what());
+    return true;
+  }
+  res.success = true;
+  res.message = "target '" + req.name + "' set";
   return true;
 }
 
@@ -415,6 +439,7 @@ void SimulatorRos::publish(const StepStats& s, double ms) {
     w.wrench.torque.x = m.x(), w.wrench.torque.y = m.y(), w.wrench.torque.z = m.z();
     wrench_pubs_[i].publish(w);
   }
+  publishTargets(st.header);
 
   const ros::WallTime wnow = ros::WallTime::now();
   if ((wnow - last_display_).toSec() >= 1.0 / display_rate_) {
@@ -423,10 +448,73 @@ void SimulatorRos::publish(const StepStats& s, double ms) {
   }
 }
 
+void SimulatorRos::publishTargets(const std_msgs::Header& header) {
+  const int nt = sim_->numTargets();
+  if (nt == 0) return;
+  auto point = [](const Vec3& v) {
+    geometry_msgs::Point p;
+    p.x = v.x(), p.y = v.y(), p.z = v.z();
+    return p;
+  };
+  auto vector = [](const Vec3& v) {
+    geometry_msgs::Vector3 p;
+    p.x = v.x(), p.y = v.y(), p.z = v.z();
+    return p;
+  };
+  if (target_pub_.getNumSubscribers() > 0) {
+    geometry_msgs::PointStamped ps;
+    ps.header = header;
+    ps.point = point(sim_->targetPosition(std::min(primary_target_, nt - 1)));
+    target_pub_.publish(ps);
+  }
+  if (target_state_pub_.getNumSubscribers() == 0) return;
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  for (int i = 0; i < nt; ++i) {
+    needle_sim::TargetState m;
+    m.header = header;
+    m.name = sim_->targetName(i);
+    const Vec3 x = sim_->targetPosition(i);
+    m.planned = point(sim_->targetRest(i));
+    m.position = point(x);
+    m.displacement = vector(x - sim_->targetStart(i));
+    m.shift = vector(x - sim_->targetRest(i));
+    m.velocity = vector(sim_->targetVelocity(i));
+    m.needle_tip_distance = m.electrode_tip_distance = nan;
+    for (int n = 0; n < sim_->numNeedles(); ++n) {
+      const double d = (sim_->needle(n).tipPosition() - x).norm();
+      m.needles.push_back(sim_->needle(n).name());
+      m.tip_distances.push_back(d);
+      if (n == 0) m.needle_tip_distance = d;
+      if (sim_->needle(n).name() == "electrode") m.electrode_tip_distance = d;
+    }
+    m.displacement_error_bound = nan;
+    target_state_pub_.publish(m);
+  }
+}
+
+void SimulatorRos::broadcastTargets(const std_msgs::Header& header) {
+  std::vector<geometry_msgs::TransformStamped> tfs;
+  for (int i = 0; i < sim_->numTargets(); ++i) {
+    geometry_msgs::TransformStamped t;
+    t.header = header;
+    t.child_frame_id = "target/" + sim_->targetName(i);
+    const Vec3 x = sim_->targetPosition(i);
+    t.transform.translation.x = x.x(), t.transform.translation.y = x.y(), t.transform.translation.z = x.z();
+    t.transform.rotation.w = 1;
+    tfs.push_back(t);
+    if (i == primary_target_) {
+      t.child_frame_id = "target";
+      tfs.push_back(t);
+    }
+  }
+  if (!tfs.empty()) tf_broadcaster_->sendTransform(tfs);
+}
+
 void SimulatorRos::publishDisplay() {
   std_msgs::Header header;
   header.stamp = ros::Time::now();
   header.frame_id = frame_;
+  broadcastTargets(header);
   for (int i = 0; i < sim_->numNeedles(); ++i) {
     const NeedleBody& nd = sim_->needle(i);
     if (path_pubs_[i].getNumSubscribers() > 0) {
@@ -499,14 +587,34 @@ void SimulatorRos::publishDisplay() {
     return c;
   };
   if (want_surface) {
-    if (faces_mesh_ != &mesh || faces_elements_ != mesh.numElements()) {
-      faces_ = mesh.boundaryFaces();
-      faces_mesh_ = &mesh;
-      faces_elements_ = mesh.numElements();
+    // Triangle corners and their displacements: an immersed organ's own surface (carried by
+    // the grid), else the mesh boundary (2 triangles per face).
+    std::vector<Vec3> corner;
+    std::vector<double> du;
+    if (const EmbeddedSurface* organ = sim_->organSurface()) {
+      const TriangleMesh& rest = organ->rest();
+      std::vector<Vec3> p;
+      organ->positions(x, p);
+      for (int tr = 0; tr < rest.numTriangles(); ++tr)
+        for (int v : rest.triangle(tr)) {
+          corner.push_back(p[v]);
+          du.push_back((p[v] - rest.vertex(v)).norm());
+        }
+    } else {
+      if (faces_mesh_ != &mesh || faces_elements_ != mesh.numElements()) {
+        faces_ = mesh.boundaryFaces();
+        faces_mesh_ = &mesh;
+        faces_elements_ = mesh.numElements();
+      }
+      const VecX u = t.displacements();
+      for (const auto& f : faces_)
+        for (int k : {0, 1, 2, 0, 2, 3}) {
+          const int n = f.nodes[k];
+          corner.push_back(x.segment<3>(3 * n));
+          du.push_back(u.segment<3>(3 * n).norm());
+        }
     }
-    const VecX u = t.displacements();
-    double umax = 0;
-    for (int n = 0; n < mesh.numNodes(); ++n) umax = std::max(umax, u.segment<3>(3 * n).norm());
+    const double umax = du.empty() ? 0.0 : *std::max_element(du.begin(), du.end());
     visualization_msgs::Marker m;
     m.header = header;
     m.ns = "tissue_surface";
@@ -516,14 +624,12 @@ void SimulatorRos::publishDisplay() {
     m.pose.orientation.w = 1;
     m.scale.x = m.scale.y = m.scale.z = 1;
     m.color.a = 1;
-    for (const auto& f : faces_)
-      for (int k : {0, 1, 2, 0, 2, 3}) {
-        const int n = f.nodes[k];
-        geometry_msgs::Point p;
-        p.x = x[3 * n], p.y = x[3 * n + 1], p.z = x[3 * n + 2];
-        m.points.push_back(p);
-        m.colors.push_back(colour(umax > 0 ? u.segment<3>(3 * n).norm() / umax : 0.0));
-      }
+    m.points.resize(corner.size());
+    m.colors.resize(corner.size());
+    for (size_t i = 0; i < corner.size(); ++i) {
+      m.points[i].x = corner[i].x(), m.points[i].y = corner[i].y(), m.points[i].z = corner[i].z();
+      m.colors[i] = colour(umax > 0 ? du[i] / umax : 0.0);
+    }
     surface_pub_.publish(m);
   }
   if (want_error) {

@@ -118,6 +118,7 @@ std::vector<std::string> withoutRosArgs(int argc, char** argv) {
 }
 
 int main(int argc, char** argv) {
+  needle_sim::limitOpenMpThreads(argv);
   flushDenormalsToZero();
   CLI::App app{"needle_sim: real-time, error-controlled FE simulation of needle insertion (headless driver)"};
   app.require_subcommand(1);

@@ -1,7 +1,8 @@
 // rostest behaviour checks of needle_sim_node (launched by node.test with the phantom
 // insertion scene, commands from needle/command_pose): commanded insertion moves the tip
 // and punctures, the wrench opposes the insertion, bad commands are rejected while the node
-// keeps running, the deformation cloud is well formed, reset restores the initial state.
+// keeps running, the deformation cloud is well formed, reset restores the initial state,
+// set_target adds a tracked target (target/state, target, tf) and rejects one outside.
 #include <gtest/gtest.h>
 #include <ros/ros.h>
 
@@ -14,7 +15,12 @@
 #include <geometry_msgs/PoseStamped.h>
 #include <geometry_msgs/WrenchStamped.h>
 #include <nav_msgs/Path.h>
+#include <geometry_msgs/PointStamped.h>
 #include <needle_sim/NeedleTrajectory.h>
+#include <needle_sim/SetTarget.h>
+#include <needle_sim/TargetState.h>
+#include <tf2_ros/buffer.h>
+#include <tf2_ros/transform_listener.h>
 #include <needle_sim/SimStatus.h>
 #include <sensor_msgs/PointCloud2.h>
 #include <sensor_msgs/point_cloud2_iterator.h>
@@ -234,6 +240,56 @@ TEST(NeedleSimNode, CommandedInsertionRejectsBadCommandsAndResets) {
   ASSERT_TRUE(waitFor([&] { return std::abs(L.tipX() - tip0 - 0.0025) < 5e-5; }, 5.0)) << L.tipX() - tip0;
   EXPECT_EQ(L.lastStatus().insertion_states[0], "approaching");
   EXPECT_EQ(L.lastStatus().rejected_commands, rejected_before + 1);
+
+  // 8. Targets: set_target outside the tissue is refused (nothing changes); inside, the
+  //    target is published as target/state (distance to the tip consistent with the path),
+  //    target (PointStamped) and tf frames target/<name> and target.
+  std::mutex tm;
+  needle_sim::TargetState state;
+  geometry_msgs::PointStamped primary;
+  bool have_state = false, have_primary = false;
+  auto s8 = nh.subscribe<needle_sim::TargetState>("target/state", 100, [&](const needle_sim::TargetState::ConstPtr& m) {
+    std::lock_guard<std::mutex> lk(tm);
+    state = *m;
+    have_state = true;
+  });
+  auto s9 = nh.subscribe<geometry_msgs::PointStamped>("target", 10, [&](const geometry_msgs::PointStamped::ConstPtr& m) {
+    std::lock_guard<std::mutex> lk(tm);
+    primary = *m;
+    have_primary = true;
+  });
+  ASSERT_TRUE(ros::service::waitForService("set_target", 5000));
+  needle_sim::SetTarget set;
+  set.request.name = "goal";
+  set.request.point.x = 1.0, set.request.point.y = 1.0, set.request.point.z = 1.0;
+  ASSERT_TRUE(ros::service::call("set_target", set));
+  EXPECT_FALSE(set.response.success);
+  EXPECT_NE(set.response.message.find("outside"), std::string::npos) << set.response.message;
+  ros::WallDuration(0.3).sleep();
+  {
+    std::lock_guard<std::mutex> lk(tm);
+    EXPECT_FALSE(have_state) << "no target exists yet";
+  }
+  set.request.point.x = 0.01, set.request.point.y = kY, set.request.point.z = kZ;
+  ASSERT_TRUE(ros::service::call("set_target", set));
+  EXPECT_TRUE(set.response.success) << set.response.message;
+  ASSERT_TRUE(waitFor([&] { std::lock_guard<std::mutex> lk(tm); return have_state && have_primary; }, 5.0));
+  {
+    std::lock_guard<std::mutex> lk(tm);
+    EXPECT_EQ(state.name, "goal");
+    EXPECT_EQ(state.planned.x, 0.01);
+    EXPECT_NEAR(state.position.x, 0.01, 1e-4);
+    ASSERT_EQ(state.tip_distances.size(), 1u);
+    EXPECT_NEAR(state.needle_tip_distance, 0.01 - L.tipX(), 2e-4);
+    EXPECT_TRUE(std::isnan(state.electrode_tip_distance));
+    EXPECT_NEAR(primary.point.x, state.position.x, 1e-4);
+    EXPECT_EQ(primary.header.frame_id, "tissue");
+  }
+  tf2_ros::Buffer buffer;
+  tf2_ros::TransformListener listener(buffer);
+  EXPECT_TRUE(buffer.canTransform("tissue", "target/goal", ros::Time(0), ros::Duration(3.0)));
+  EXPECT_TRUE(buffer.canTransform("tissue", "target", ros::Time(0), ros::Duration(3.0)));
+  EXPECT_EQ(L.lastStatus().state, "running");
 }
 
 int main(int argc, char** argv) {

@@ -56,6 +56,23 @@ Scene swingingPhantom() {
   return loadScene(kScenes + "phantom_8x4x4.yaml",
                    {"tissue.gravity=[0, 0, -2000]", "adaptivity={theta: 0.3, max_level: 2, every_steps: 1000000}"});
 }
+
+// A synthetic estimate of the active mesh of `ad`: eta from each element's centroid.
+template <class F>
+ErrorEstimate syntheticEstimate(const MeshAdaptation& ad, F eta_of) {
+  ErrorEstimate est;
+  const auto& act = ad.active();
+  double s = 0;
+  for (int e = 0; e < act.mesh.numElements(); ++e) {
+    const double v = eta_of(Vec3(act.mesh.elementCorners(e).colwise().mean().transpose()));
+    est.eta.push_back(v);
+    est.max = std::max(est.max, v);
+    s += v * v;
+  }
+  est.global = std::sqrt(s);
+  est.energy = 10 * est.global;
+  return est;
+}
 }  // namespace
 
 TEST(RefinedBoundary, FacesCoverTheBoxSurfaceOnce) {
@@ -142,19 +159,7 @@ TEST(Adaptivity, CoarseningWaitsForItsHysteresis) {
   a.theta_coarsen = 0.1;
   a.coarsen_after = 3;
   MeshAdaptation ad(a, HexMesh::box(Vec3(0, 0, 0), Vec3(4, 4, 4), Vec3i(4, 4, 4)));
-  auto estimate = [&](auto eta_of) {
-    ErrorEstimate est;
-    const auto& act = ad.active();
-    for (int e = 0; e < act.mesh.numElements(); ++e) est.eta.push_back(eta_of(act.mesh.elementCorners(e).colwise().mean().transpose(), act.level[e]));
-    double s = 0;
-    for (double v : est.eta) {
-      s += v * v;
-      est.max = std::max(est.max, v);
-    }
-    est.global = std::sqrt(s);
-    est.energy = 10 * est.global;
-    return est;
-  };
+  auto estimate = [&](auto eta_of) { return syntheticEstimate(ad, [&](const Vec3& c) { return eta_of(c, 0); }); };
   // A large error in the corner element: it alone is refined.
   auto r = ad.adapt(estimate([](const Vec3& c, int) { return c.norm() < 1 ? 1.0 : 0.01; }));
   EXPECT_EQ(r.refined, 1);
@@ -174,6 +179,30 @@ TEST(Adaptivity, CoarseningWaitsForItsHysteresis) {
   // stays below theta * max: it is not refined again.
   r = ad.adapt(estimate(moved));
   EXPECT_FALSE(r.changed);
+}
+
+// After keepCurrentRefinement (the brain shift's mesh), small errors there never merge it;
+// refinement made afterwards still coarsens as usual.
+TEST(Adaptivity, KeptRefinementIsNeverCoarsened) {
+  AdaptivitySettings a;
+  a.theta = 0.5;
+  a.max_level = 1;
+  a.coarsen = true;
+  a.theta_coarsen = 0.1;
+  a.coarsen_after = 1;
+  MeshAdaptation ad(a, HexMesh::box(Vec3(0, 0, 0), Vec3(4, 4, 4), Vec3i(4, 4, 4)));
+  auto estimate = [&](auto eta_of) { return syntheticEstimate(ad, eta_of); };
+  ASSERT_EQ(ad.adapt(estimate([](const Vec3& c) { return c.norm() < 1 ? 1.0 : 0.01; })).refined, 1);
+  ad.keepCurrentRefinement();
+  auto far = [](const Vec3& c) { return (c - Vec3(3.5, 3.5, 3.5)).norm() < 0.5 ? 1.0 : 0.001; };
+  auto r = ad.adapt(estimate(far));
+  EXPECT_EQ(r.coarsened, 0);  // the kept corner stays refined
+  EXPECT_EQ(r.refined, 1);    // the far corner is refined
+  auto near = [](const Vec3& c) { return c.norm() < 1 ? 1.0 : 0.001; };
+  r = ad.adapt(estimate(near));
+  EXPECT_EQ(r.coarsened, 1);  // the far corner merges back
+  EXPECT_EQ(ad.active().mesh.numElements(), 64 - 1 + 8);
+  for (int k = 0; k < 3; ++k) EXPECT_FALSE(ad.adapt(estimate(far)).coarsened);
 }
 
 TEST(Adaptivity, DofBudgetHolds) {

@@ -165,3 +165,35 @@ TEST(SprEstimator, ManufacturedSolutionRateAndEffectivity) {
   EXPECT_GT(r[0].eta / r[0].error, r[1].eta / r[1].error);
   EXPECT_GT(r[1].eta / r[1].error, eff16);
 }
+
+// The estimate of a change from a reference state (the brain shift's preload): zero for no
+// change, the plain estimate from the rest state, and the estimate of the difference field
+// when the reference is a solution of its own (SPR is linear in the stress field).
+TEST(SprEstimator, EstimateOfAChangeFromAReference) {
+  const int n = 4;
+  TissueScene t = unitCube(0.3);
+  TissueBody body(HexMesh::box(Vec3::Zero(), Vec3::Ones(), Vec3i(n, n, n)), t, staticDirect());
+  const Manufactured m{1e-6, t.material.lameLambda(), t.material.lameMu()};
+  const HexMesh& mesh = body.mesh();
+  VecX f = VecX::Zero(mesh.numDofs());
+  for (int i = 0; i < mesh.numNodes(); ++i) node3(f, i) = body.model().nodalVolume()[i] * m.force(mesh.node(i));
+  body.addExternalForce(f);
+  body.solveStatic();
+  const VecX x1 = body.positions();
+  body.addExternalForce(0.5 * f);
+  body.solveStatic();
+  const VecX x2 = body.positions();
+  const VecX X = mesh.restPositions();
+  SprEstimator spr(body.model());
+
+  const ErrorEstimate none = spr.estimate(x2, &x2);
+  EXPECT_EQ(none.global, 0.0);
+  const ErrorEstimate plain = spr.estimate(x2), from_rest = spr.estimate(x2, &X);
+  ASSERT_GT(plain.global, 0);
+  EXPECT_NEAR(from_rest.global, plain.global, 1e-12 * plain.global);
+  // Small strains: the change x1 -> x2 is the solution for half the load, whose estimate is
+  // half that of the full load (linear), i.e. a third of x2's.
+  const ErrorEstimate change = spr.estimate(x2, &x1);
+  EXPECT_NEAR(change.global, plain.global / 3, 1e-4 * plain.global);
+  for (int e = 0; e < mesh.numElements(); ++e) EXPECT_NEAR(change.eta[e], plain.eta[e] / 3, 1e-4 * plain.max);
+}

@@ -50,6 +50,10 @@ class MeshAdaptation {
   // constraint reproduces when the field is trilinear on the coarse side).
   VecX transfer(const VecX& previous) const;
 
+  // Makes the current refinement a floor: later passes never merge what is refined now
+  // (the mesh the brain shift was computed on carries its preload).
+  void keepCurrentRefinement();
+
   // Active elements per level 0..max_level.
   std::vector<int> elementsPerLevel() const;
   int numDofs() const { return active_.mesh.numDofs(); }
@@ -64,6 +68,7 @@ class MeshAdaptation {
   std::vector<int> previous_node_id_;      // forest ids of the previous mesh's nodes
   std::unordered_map<int, int> small_for_;  // parent cell -> consecutive passes its children were small
   double eta_scale_ = 0;                    // largest global estimate seen
+  std::unordered_map<int, char> kept_;      // parents that may not be merged
   static constexpr double kNoiseFloor = 1e-6;
 };
 

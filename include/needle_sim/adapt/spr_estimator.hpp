@@ -35,7 +35,11 @@ class SprEstimator {
  public:
   explicit SprEstimator(const CorotationalHexModel& model);
   // Estimate for positions x (3n) with the model's current rotations.
-  ErrorEstimate estimate(const VecX& x) const;
+  ErrorEstimate estimate(const VecX& x) const { return estimate(x, nullptr); }
+  // Estimate of the stress change from positions `reference` to x (SPR is linear in the
+  // stress field): after a preload such as the brain shift, the error of the response to
+  // what came after it, which the preload's own large stresses would otherwise mask.
+  ErrorEstimate estimate(const VecX& x, const VecX* reference) const;
 
   // Stress of element e at natural coordinates xi, global frame, for positions x (the
   // element's rotation is extracted from x).

@@ -5,16 +5,33 @@
 // seconds. One thread gives predictable step times; more speeds up large factorisations.
 // Looked up at run time, so that any BLAS works (a no-op where OpenBLAS is absent).
 #include <dlfcn.h>
+#include <unistd.h>
+
+#include <cstdlib>
 
 namespace needle_sim {
 
-// Returns false when the BLAS offers no thread control.
+// Returns false when the BLAS offers no thread control. CHOLMOD's own OpenMP loops (when
+// libgomp is loaded) get the same number.
 inline bool setBlasThreads(int n) {
   using Fn = void (*)(int);
+  if (auto omp = reinterpret_cast<Fn>(dlsym(RTLD_DEFAULT, "omp_set_num_threads"))) omp(n);
   auto f = reinterpret_cast<Fn>(dlsym(RTLD_DEFAULT, "openblas_set_num_threads"));
   if (!f) return false;
   f(n);
   return true;
+}
+
+// Debian's CHOLMOD runs small OpenMP loops inside the supernodal factorisation with a
+// compiled-in 4 threads that omp_set_num_threads cannot lower; on two cores their futex
+// hand-offs doubled the brain-shift pre-step's time. Only OMP_THREAD_LIMIT caps them, and
+// libgomp reads it once at load: a program calls this first thing in main() and is
+// re-executed once with OMP_THREAD_LIMIT=1 unless the user set it. (The nodelet cannot do
+// this: the launch files set the variable for its manager.)
+inline void limitOpenMpThreads(char** argv) {
+  if (std::getenv("OMP_THREAD_LIMIT") || std::getenv("NEEDLE_SIM_NO_REEXEC")) return;
+  setenv("OMP_THREAD_LIMIT", "1", 1);
+  execv("/proc/self/exe", argv);  // returns only on failure: then run as we are
 }
 
 }  // namespace needle_sim

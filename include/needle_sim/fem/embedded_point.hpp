@@ -39,7 +39,7 @@ class PointLocator {
 
  private:
   const HexMesh& mesh_;
-  Vec3 lo_, cell_;
+  Vec3 lo_, hi_, cell_;
   Vec3i dims_;
   std::vector<std::vector<int>> bins_;
   int binIndex(const Vec3i& c) const { return c[0] + dims_[0] * (c[1] + dims_[1] * c[2]); }

@@ -36,7 +36,14 @@
 // tissue/error_markers (visualization_msgs/MarkerArray: DELETEALL, then one CUBE_LIST per
 // refinement level coloured by eta); the heavy ones only while subscribed, at ~display_rate.
 // Diagnostics (diagnostic_updater, 1 Hz): commands rejected / clamped, overruns, failure.
-// Services: reset (std_srvs/Trigger): back to the scene's initial state.
+// Targets (the scene's `targets`, and those added by set_target): target/state
+// (needle_sim/TargetState, one message per target and step: position, displacement since
+// step 0 and since planning, velocity, distance to each needle tip), target
+// (geometry_msgs/PointStamped, the primary target: the first, or the last set), both only
+// while subscribed; tf frames target/<name> and target (the primary) at ~display_rate.
+// For an immersed organ, tissue/surface is the organ's own deformed surface.
+// Services: reset (std_srvs/Trigger): back to the scene's initial state (and its targets);
+// set_target (needle_sim/SetTarget): add or move a target at a planning position.
 #include <ros/ros.h>
 
 #include <atomic>
@@ -50,9 +57,11 @@
 
 #include <geometry_msgs/PoseStamped.h>
 #include <needle_sim/NeedleTrajectory.h>
+#include <needle_sim/SetTarget.h>
 #include <std_srvs/Trigger.h>
 #include <diagnostic_updater/diagnostic_updater.h>
 #include <tf2_ros/buffer.h>
+#include <tf2_ros/transform_broadcaster.h>
 #include <tf2_ros/transform_listener.h>
 
 #include "needle_sim/scene/scene.hpp"
@@ -102,6 +111,9 @@ class SimulatorRos {
                      const std::string& source);
   void lookupTfCommands();  // ~command_source: tf
   bool onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
+  bool onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::SetTarget::Response& res);
+  void publishTargets(const std_msgs::Header& header);   // light: every step, while subscribed
+  void broadcastTargets(const std_msgs::Header& header); // tf, at ~display_rate
   void worker();
   void stepOnce();  // with sim_mutex_ held
   void publish(const StepStats& s, double ms);
@@ -148,11 +160,13 @@ class SimulatorRos {
   std::atomic<uint64_t> tf_failures_{0};
   ros::Timer timer_;
   std::vector<ros::Subscriber> command_subs_;
-  ros::Publisher status_pub_, cloud_pub_, surface_pub_, error_pub_;
+  ros::Publisher status_pub_, cloud_pub_, surface_pub_, error_pub_, target_pub_, target_state_pub_;
+  std::unique_ptr<tf2_ros::TransformBroadcaster> tf_broadcaster_;
+  int primary_target_ = 0;  // sim_mutex_
   ros::Timer diag_timer_;
   std::unique_ptr<diagnostic_updater::Updater> updater_;
   std::vector<ros::Publisher> wrench_pubs_, path_pubs_;
-  ros::ServiceServer reset_srv_;
+  ros::ServiceServer reset_srv_, set_target_srv_;
   std::thread thread_;
 };
 

@@ -146,6 +146,7 @@ struct BrainShiftScene {
   double gap = 0.0;                     // skull offset from the undeformed surface [m]
   std::shared_ptr<const TriangleMesh> skull;  // or a rigid skull surface
   bool skull_contact = true;
+  bool skull_support = true;            // the skull keeps holding the brain during the insertion
   std::optional<double> target_shift;   // scale the load so that `target` moves this far [m]
   std::string target;                   // default: the first target
   int load_steps = 4;

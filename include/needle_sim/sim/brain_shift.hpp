@@ -13,7 +13,15 @@
 // multipliers lambda_v >= 0, then lambda_v <- max(0, lambda_v + k_v g_v), until the
 // penetration is below the tolerance. After the pre-step, the skull's reaction forces are
 // kept as constant loads with the shift load, so the shifted brain is the equilibrium the
-// insertion starts from (the skull contact is not re-solved during the insertion).
+// insertion starts from. With `skull.support` (default), the skull also keeps holding the
+// brain where it touched it: each vertex in contact gets a linear spring along the skull's
+// normal (the contact penalty, anchored at its shifted position; it slides freely along
+// the skull). Without it the brain hangs from the clamps alone during the insertion and
+// swings under the needle's forces.
+//
+// On an adaptive mesh the pre-step alternates solve, estimate and refine until the mesh
+// stops changing (Simulation); rebind() moves the contact to the new mesh with its
+// multipliers, and apply() starts from the previous load scale.
 //
 // With `target_shift`, the load is scaled by secant iterations until the target moves by
 // that distance (the paper reproduces a measured shift of about 6.5 mm).
@@ -36,6 +44,8 @@ struct BrainShiftResult {
   int multiplier_updates = 0;
   int factorizations = 0;
   double factor_ms = 0, solve_ms = 0;
+  int passes = 0;                   // solve + adapt passes (1 without adaptivity)
+  int dofs = 0;                     // tissue DOFs of the mesh it ended on
   int contacts = 0;                 // surface vertices pressed on the skull at the end
   double max_penetration = 0;       // largest g_v > 0 at the end [m]
   double skull_force = 0;           // |sum of skull reactions| [N]
@@ -53,11 +63,21 @@ class BrainShift {
   // Runs the pre-step on `body`, which ends at equilibrium with the shift load and the
   // frozen skull reactions applied. Throws NumericalError when it fails to converge or the
   // target shift cannot be reached.
-  BrainShiftResult apply(TissueBody& body, const EmbeddedPoint* target);
+  // start_scale: the load scale of the first solve (the previous pass's on a refined mesh).
+  // rough: solves to a loose tolerance, target_shift to 1 % (a pass of the adaptive
+  // pre-step whose state only feeds the error estimate and the next pass's scale).
+  BrainShiftResult apply(TissueBody& body, const EmbeddedPoint* target, double start_scale = 1.0, bool rough = false);
+  // The organ surface embedded in a new mesh (same vertices): contact state carried over.
+  void rebind(const EmbeddedSurface* organ) { organ_ = organ; }
   // Skull reaction per organ-surface vertex at the end of apply() (zero without contact).
   const std::vector<Vec3>& skullForces() const { return skull_force_; }
   // The frozen skull reactions as nodal forces on a (possibly new) mesh.
   VecX skullLoad(const TissueBody& body, const EmbeddedSurface& organ) const;
+  // The skull support springs (see above) on a (possibly new) mesh: their stiffness blocks
+  // and the constant force of their anchors, so that their force is anchorLoad - K_s x.
+  ElementBlocks supportStiffness(const EmbeddedSurface& organ) const;
+  VecX supportAnchorLoad(const TissueBody& body, const EmbeddedSurface& organ) const;
+  bool hasSupport() const { return scene_.skull_support && !anchor_.empty(); }
 
  private:
   void contact(const TissueBody& body, const VecX& x, VecX& f, ElementBlocks& K) const;
@@ -72,6 +92,8 @@ class BrainShift {
   std::vector<double> k_;         // penalty per vertex
   std::vector<double> lambda_;    // multipliers
   std::vector<Vec3> skull_force_;
+  std::vector<int> touching_;     // vertices in contact at the end of apply()
+  std::vector<Vec3> anchor_;      // their shifted positions
 };
 
 }  // namespace needle_sim

@@ -76,6 +76,11 @@ class Simulation {
   const Vec3& targetStart(int i) const { return target_start_[i]; }
   Vec3 targetVelocity(int i) const;
   int findTarget(const std::string& name) const;
+  // Adds a target at a planning (rest) position, or moves the one of this name there; its
+  // start position is where that material point is now. Returns its index. Throws
+  // InputError (key "set_target") for an empty name or a point outside the tissue, and
+  // changes nothing then.
+  int setTarget(const std::string& name, const Vec3& point);
 
   // Immersed geometry (nullptr for box / block tissue): the grid and the organ surface
   // embedded in the current mesh.
@@ -88,8 +93,14 @@ class Simulation {
   void checkState() const;
   void adaptMesh();
   // After the adaptation changed the mesh: new tissue body with the state carried over,
-  // probes and constraint points re-embedded.
-  void rebuildTissue();
+  // probes and constraint points re-embedded; without persistent_loads (during the
+  // pre-step) the brain-shift loads are left out and the velocities zeroed.
+  void rebuildTissue(bool persistent_loads = true);
+  // The brain-shift pre-step, with its solve/adapt passes on an adaptive mesh.
+  void preStep();
+  static constexpr int kMaxShiftPasses = 6;
+  // The skull support springs of the brain shift on the current mesh.
+  void applySupport();
   void embedProbes();
   void embedTargets();
   // Volume fractions of the active mesh's elements (immersed geometry), cached per cell.
@@ -109,6 +120,7 @@ class Simulation {
   std::unique_ptr<EmbeddedSurface> organ_;
   std::unique_ptr<BrainShift> shift_;
   BrainShiftResult shift_result_;
+  VecX reference_;  // the shifted state (current mesh): the estimate's reference, or empty
   std::unique_ptr<MeshAdaptation> adaptation_;
   mutable std::unique_ptr<SprEstimator> estimator_;  // bound to the current tissue body
   mutable ErrorEstimate estimate_;

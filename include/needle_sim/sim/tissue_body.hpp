@@ -87,6 +87,10 @@ class TissueBody {
   // and its stiffness (-df/dx) as element blocks (replacing what K holds).
   using ExtraForce = std::function<void(const VecX& x, VecX& f, ElementBlocks& K)>;
   StepStats solveStatic(const ExtraForce& extra, double tolerance, int max_iterations);
+  // Solves K_t y = rhs (3n, free DOFs) with the tangent at the current state (the extra
+  // terms' blocks included): the sensitivity of an equilibrium to a load, e.g. d x / d s
+  // for a load s * rhs. Prescribed entries of y are zero.
+  VecX tangentSolve(const ExtraForce& extra, const VecX& rhs, StepStats& stats);
 
   double kineticEnergy() const;
   double elasticEnergy() const { return model_->elasticEnergy(x_); }
@@ -97,11 +101,21 @@ class TissueBody {
   void setState(const VecX& x, const VecX& v);
   // Adds nodal forces (3n) to the constant external loads (e.g. a manufactured body force).
   void addExternalForce(const VecX& f) { f_ext_ += f; }
+  // Back to the scene's own loads (gravity, body force, tractions).
+  void resetExternalForce() { f_ext_ = scene_f_ext_; }
   // Moves the prescribed DOFs to the values in x (other entries ignored).
   void setPrescribedPositions(const VecX& x);
+  // Constant linear springs, force -K_s x with K_s given as symmetric positive semi-definite
+  // element blocks (their anchors go in as external force): e.g. the skull holding the
+  // shifted brain where it touched it. Part of the stiffness in every later solve.
+  void setSupport(ElementBlocks blocks);
+  const ElementBlocks& support() const { return support_; }
 
  private:
   void accumulate(StepStats& s, const LinearSolveStats& l) const;
+  // f -= c K_s y (the support springs).
+  void addSupportProduct(const VecX& y, double c, VecX& f) const;
+  const ElementBlocks* supportOrNull() const { return support_.element.empty() ? nullptr : &support_; }
 
   std::unique_ptr<HexMesh> mesh_;
   std::unique_ptr<CorotationalHexModel> model_;
@@ -109,7 +123,9 @@ class TissueBody {
   DofMap dofs_;
   std::unique_ptr<SystemSolver> solver_;
   VecX rest_, x_, v_, f_ext_, mass_, mass_free_;
+  VecX scene_f_ext_;
   VecX dv_free_;  // last increment: warm start for CG
+  ElementBlocks support_;
   const VecX& column(int free_dof) const;
   void cacheColumns(const std::vector<int>& free_dofs) const;
   struct CachedColumn {

@@ -66,6 +66,7 @@ AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est) {
     for (const auto& [p, f] : fam) {
       if (f.active != 8 || f.marked || !(std::sqrt(f.eta2) < std::max(settings_.theta_coarsen * est.max, floor)))
         continue;
+      if (kept_.count(p)) continue;
       auto it = small_for_.find(p);
       const int n = (it == small_for_.end() ? 0 : it->second) + 1;
       small[p] = n;
@@ -119,6 +120,11 @@ AdaptationResult MeshAdaptation::refineElements(const std::vector<int>& elements
   res.changed = res.refined > 0;
   if (res.changed) activate();
   return res;
+}
+
+void MeshAdaptation::keepCurrentRefinement() {
+  for (int c : active_.cell)
+    for (int p = forest_.parent(c); p >= 0; p = forest_.parent(p)) kept_[p] = 1;
 }
 
 AdaptationResult MeshAdaptation::coarsenElements(const std::vector<int>& elements) {

@@ -130,15 +130,19 @@ double SprEstimator::vonMises(const Stress& s) {
                    3 * (s[3] * s[3] + s[4] * s[4] + s[5] * s[5]));
 }
 
-ErrorEstimate SprEstimator::estimate(const VecX& x) const {
+ErrorEstimate SprEstimator::estimate(const VecX& x, const VecX* reference) const {
   const HexMesh& mesh = model_.mesh();
   const int ne = mesh.numElements(), nn = mesh.numNodes();
   ErrorEstimate est;
   est.centroid_stress.resize(ne);
-  std::vector<Mat3> R(ne);
+  std::vector<Mat3> R(ne), R0(reference ? ne : 0);
   for (int e = 0; e < ne; ++e) {
     R[e] = model_.computeRotation(e, x);
     est.centroid_stress[e] = elementStress(x, e, Vec3::Zero(), R[e]);
+    if (reference) {
+      R0[e] = model_.computeRotation(e, *reference);
+      est.centroid_stress[e] -= elementStress(*reference, e, Vec3::Zero(), R0[e]);
+    }
   }
 
   // Recovery: interior patches first, their polynomials also serve the patch's other nodes.
@@ -192,6 +196,8 @@ ErrorEstimate SprEstimator::estimate(const VecX& x) const {
     const auto& el = mesh.element(e);
     const auto X = mesh.elementCorners(e);
     const Eigen::Matrix<double, 24, 1> u = corotatedDisplacement(x, e, R[e]);
+    Eigen::Matrix<double, 24, 1> u0;
+    if (reference) u0 = corotatedDisplacement(*reference, e, R0[e]);
     double eta2 = 0;
     // Only the material part of an immersed cell counts (its volume fraction).
     const double frac = mesh.fraction(e);
@@ -200,7 +206,9 @@ ErrorEstimate SprEstimator::estimate(const VecX& x) const {
       const double detJ = J.determinant() * frac;
       Stress star = Stress::Zero();
       for (int a = 0; a < 8; ++a) star += gt.shape[q][a] * est.recovered[el[a]];
-      const Stress sh = rotate(R[e], D * (hex8::strainDisplacement(gt.grad[q] * J.inverse()) * u));
+      const auto B = hex8::strainDisplacement(gt.grad[q] * J.inverse());
+      Stress sh = rotate(R[e], D * (B * u));
+      if (reference) sh -= rotate(R0[e], D * (B * u0));
       const Stress d = sh - star;
       eta2 += d.dot(Dinv * d) * detJ;
       energy += sh.dot(Dinv * sh) * detJ;

@@ -7,7 +7,8 @@ namespace needle_sim {
 
 PointLocator::PointLocator(const HexMesh& mesh) : mesh_(mesh) {
   lo_ = mesh.boundsMin();
-  const Vec3 ext = (mesh.boundsMax() - lo_).cwiseMax(1e-300);
+  hi_ = mesh.boundsMax();
+  const Vec3 ext = (hi_ - lo_).cwiseMax(1e-300);
   // About one element per bin on average.
   const double n = std::max(1, mesh.numElements());
   const double vol = ext.prod();
@@ -35,7 +36,7 @@ Vec3i PointLocator::binOf(const Vec3& p) const {
 bool PointLocator::locate(const Vec3& p, EmbeddedPoint& out) const {
   const Vec3 tol = 1e-9 * cell_;
   if (((p - lo_).array() < -tol.array()).any() ||
-      ((p - mesh_.boundsMax()).array() > tol.array()).any())
+      ((p - hi_).array() > tol.array()).any())
     return false;
   for (int e : bins_[binIndex(binOf(p))]) {
     Vec3 xi;

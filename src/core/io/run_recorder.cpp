@@ -279,6 +279,9 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                         {"skull_contacts", bs.contacts},
                         {"skull_max_penetration", bs.max_penetration},
                         {"skull_force", bs.skull_force},
+                        {"skull_support", sim_.scene().brain_shift->skull_support},
+                        {"passes", bs.passes},
+                        {"dofs", bs.dofs},
                         {"ms", bs.ms}};
     if (!bs.target.empty()) {
       j["brain_shift"]["target"] = bs.target;

@@ -679,14 +679,15 @@ void readBrainShift(const Reader& r, const YAML::Node& n, Scene& s) {
   if (n["density"]) b.density = r.positive(n, p, "density");
   if (auto sk = r.child(n, p, "skull", false)) {
     const std::string q = p + ".skull";
-    r.checkKeys(sk, q, {"gap", "surface", "scale", "transform", "enabled"});
-    if (auto v = r.child(sk, q, "enabled", false)) {
-      try {
-        b.skull_contact = v.as<bool>();
-      } catch (const YAML::Exception&) {
-        r.fail(q + ".enabled", "must be true or false");
+    r.checkKeys(sk, q, {"gap", "surface", "scale", "transform", "enabled", "support"});
+    for (const char* key : {"enabled", "support"})
+      if (auto v = r.child(sk, q, key, false)) {
+        try {
+          (std::string(key) == "enabled" ? b.skull_contact : b.skull_support) = v.as<bool>();
+        } catch (const YAML::Exception&) {
+          r.fail(q + "." + key, "must be true or false");
+        }
       }
-    }
     if (sk["gap"] && sk["surface"]) r.fail(q, "give either 'gap' or 'surface', not both");
     if (sk["gap"]) {
       b.gap = r.number(sk["gap"], q + ".gap");

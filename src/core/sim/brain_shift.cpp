@@ -13,11 +13,27 @@ namespace {
 // Penalty per unit area, in units of (tissue E / cell size). Larger needs fewer multiplier
 // updates but more Newton iterations as contacts switch; 3e3 was fastest on the DBS scene.
 constexpr double kPenalty = 3e3;
+// Relative residual of a rough solve (a pass of the adaptive pre-step that only feeds the
+// error estimate).
+constexpr double kRoughTolerance = 1e-3;
 
 // Size of the (coarse) grid's first cell: the length scale of the penalty and tolerances.
 double cellSize(const HexMesh& mesh) {
   const Eigen::Matrix<double, 8, 3> X = mesh.elementCorners(0);
   return (X.colwise().maxCoeff() - X.colwise().minCoeff()).maxCoeff();
+}
+
+// Adds the stiffness w_a w_c S of a spring S at an embedded point to its element's block.
+void addVertexBlock(const EmbeddedPoint& ep, const Mat3& S, std::map<int, size_t>& slot, ElementBlocks& K) {
+  auto it = slot.find(ep.element);
+  if (it == slot.end()) {
+    it = slot.emplace(ep.element, K.element.size()).first;
+    K.element.push_back(ep.element);
+    K.K.push_back(hex8::Mat24::Zero());
+  }
+  hex8::Mat24& B = K.K[it->second];
+  for (int a = 0; a < 8; ++a)
+    for (int c = 0; c < 8; ++c) B.block<3, 3>(3 * a, 3 * c) += ep.weights[a] * ep.weights[c] * S;
 }
 }  // namespace
 
@@ -66,10 +82,30 @@ VecX BrainShift::unitLoad(const TissueBody& body) const {
   const Vec3 up = -scene_.gravity.normalized();
   const Vec3 b = density_ * scene_.gravity;  // N/m^3
   for (int e = 0; e < mesh.numElements(); ++e) {
-    const Vec3 c = mesh.elementCorners(e).colwise().mean().transpose();
-    if (!scene_.all && up.dot(c - scene_.csf_point) <= 0) continue;  // still buoyant in CSF
-    const auto& nv = model.reference(e).node_volume;                   // weighted by the fraction
-    for (int a = 0; a < 8; ++a) node3(f, mesh.element(e)[a]) += nv[a] * b;
+    // Only the part above the CSF level has lost its buoyancy: the fraction of the cell
+    // above the plane (sampled in cells it cuts, so that coarse and refined meshes carry the
+    // same load).
+    double above = 1;
+    if (!scene_.all) {
+      const Eigen::Matrix<double, 8, 3> X = mesh.elementCorners(e);
+      int n_above = 0;
+      for (int a = 0; a < 8; ++a) n_above += up.dot(X.row(a).transpose() - scene_.csf_point) > 0;
+      if (n_above == 0) continue;  // still buoyant in CSF
+      if (n_above < 8) {
+        constexpr int kS = 16;
+        int hits = 0;
+        for (int i = 0; i < kS; ++i)
+          for (int j = 0; j < kS; ++j)
+            for (int k = 0; k < kS; ++k) {
+              const Vec3 xi((i + 0.5) / kS, (j + 0.5) / kS, (k + 0.5) / kS);
+              const Vec3 p = X.transpose() * hex8::shape(2 * xi - Vec3::Ones());
+              hits += up.dot(p - scene_.csf_point) > 0;
+            }
+        above = static_cast<double>(hits) / (kS * kS * kS);
+      }
+    }
+    const auto& nv = model.reference(e).node_volume;  // weighted by the volume fraction
+    for (int a = 0; a < 8; ++a) node3(f, mesh.element(e)[a]) += above * nv[a] * b;
   }
   return f;
 }
@@ -85,16 +121,7 @@ void BrainShift::contact(const TissueBody& body, const VecX& x, VecX& f, Element
     if (l <= 0) continue;
     const auto& el = mesh.element(ep.element);
     for (int a = 0; a < 8; ++a) node3(f, el[a]) -= ep.weights[a] * l * normal_[v];
-    auto it = slot.find(ep.element);
-    if (it == slot.end()) {
-      it = slot.emplace(ep.element, K.element.size()).first;
-      K.element.push_back(ep.element);
-      K.K.push_back(hex8::Mat24::Zero());
-    }
-    const Mat3 nn = k_[v] * normal_[v] * normal_[v].transpose();
-    hex8::Mat24& B = K.K[it->second];
-    for (int a = 0; a < 8; ++a)
-      for (int c = 0; c < 8; ++c) B.block<3, 3>(3 * a, 3 * c) += ep.weights[a] * ep.weights[c] * nn;
+    addVertexBlock(ep, k_[v] * normal_[v] * normal_[v].transpose(), slot, K);
   }
 }
 
@@ -110,7 +137,7 @@ double BrainShift::penetration(const TissueBody& body, int& active) const {
   return worst;
 }
 
-BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target) {
+BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target, double start_scale, bool rough) {
   const auto t0 = std::chrono::steady_clock::now();
   BrainShiftResult res;
   const VecX unit = unitLoad(body);
@@ -121,69 +148,91 @@ BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target
     for (size_t v = 0; v < lambda_.size(); ++v) rest_[v] = organ_->vertex(static_cast<int>(v)).interpolate(body.mesh(), X);
   }
   const bool with_contact = !lambda_.empty();
-  const double pen_tol = 1e-3 * std::max(scene_.gap, 1e-3 * cellSize(body.mesh()));  // 0.1 % of the gap
+  // 0.1 % of the gap (1 % on a rough pass)
+  const double pen_tol = (rough ? 1e-2 : 1e-3) * std::max(scene_.gap, 1e-3 * cellSize(body.mesh()));
   TissueBody::ExtraForce extra;
   if (with_contact) extra = [this, &body](const VecX& x, VecX& f, ElementBlocks& K) { contact(body, x, f, K); };
 
   double applied = 0;  // scale of the load now in the body
-  // Solve for the load at `scale`, in load steps from the current one, with multiplier
-  // updates until the penetration is within tolerance.
-  auto solveAt = [&](double scale) {
-    const int steps = res.load_solves == 0 ? scene_.load_steps : 1;
-    const double from = applied;
-    for (int s = 1; s <= steps; ++s) {
-      const double to = from + (scale - from) * s / steps;
-      body.addExternalForce((to - applied) * unit);
-      applied = to;
-      for (int pass = 0; pass < 20; ++pass) {
-        const StepStats st = body.solveStatic(extra, scene_.tolerance, 50);
-        res.newton_iterations += st.newton_iterations;
-        res.factorizations += st.factorizations;
-        res.factor_ms += st.factor_ms + st.assemble_ms;
-        res.solve_ms += st.solve_ms + st.forces_ms;
-        if (!with_contact) break;
-        int active = 0;
-        const double pen = penetration(body, active);
-        if (pen <= pen_tol) break;
-        ++res.multiplier_updates;
-        for (size_t v = 0; v < lambda_.size(); ++v) {
-          const EmbeddedPoint& ep = organ_->vertex(static_cast<int>(v));
-          const double g = normal_[v].dot(ep.interpolate(body.mesh(), body.positions()) - rest_[v]) - offset_[v];
-          lambda_[v] = std::max(0.0, lambda_[v] + k_[v] * g);
-        }
+  const double tol = rough ? std::max(scene_.tolerance, kRoughTolerance) : scene_.tolerance;
+  // Newton solves with multiplier updates until the penetration is within tolerance.
+  // loose: to the rough tolerances (the steps towards target_shift's scale).
+  auto solveContact = [&](bool loose = false) {
+    loose = loose || rough;
+    for (int pass = 0; pass < (loose ? 2 : 20); ++pass) {
+      const StepStats st = body.solveStatic(extra, loose ? std::max(tol, kRoughTolerance) : tol, 50);
+      res.newton_iterations += st.newton_iterations;
+      res.factorizations += st.factorizations;
+      res.factor_ms += st.factor_ms + st.assemble_ms;
+      res.solve_ms += st.solve_ms + st.forces_ms;
+      if (!with_contact) break;
+      int active = 0;
+      const double pen = penetration(body, active);
+      if (pen <= pen_tol) break;
+      ++res.multiplier_updates;
+      for (size_t v = 0; v < lambda_.size(); ++v) {
+        const EmbeddedPoint& ep = organ_->vertex(static_cast<int>(v));
+        const double g = normal_[v].dot(ep.interpolate(body.mesh(), body.positions()) - rest_[v]) - offset_[v];
+        lambda_[v] = std::max(0.0, lambda_[v] + k_[v] * g);
       }
-      ++res.load_solves;
     }
+    ++res.load_solves;
   };
-  auto targetShift = [&]() {
-    return target ? (target->interpolate(body.mesh(), body.positions()) - target->rest).norm() : 0.0;
+  auto setScale = [&](double scale) {
+    body.addExternalForce((scale - applied) * unit);
+    applied = scale;
   };
+  auto targetMotion = [&]() { return target ? Vec3(target->interpolate(body.mesh(), body.positions()) - target->rest) : Vec3::Zero(); };
 
   try {
-    solveAt(1.0);
-    res.load_scale = 1.0;
+    const bool at_rest = (body.positions() - body.mesh().restPositions()).squaredNorm() == 0;
+    const int steps = at_rest ? scene_.load_steps : 1;
+    for (int k = 1; k <= steps; ++k) {
+      setScale(start_scale * k / steps);
+      solveContact(scene_.target_shift && target);  // rough when the scale is solved for next
+    }
+    res.load_scale = applied;
     if (scene_.target_shift && target) {
-      // Secant iterations on d(scale) = target_shift, starting from d(0) = 0.
+      // Newton on the load scale s for |d(s)| = target_shift, with the exact derivative at
+      // each equilibrium (for its contact set): dd/ds = d^ . (K_t^-1 f_unit at the target),
+      // one extra solve with the tangent. Converges in a few equilibria where a secant on s
+      // crept up on the target as the skull stiffened the response.
+      // The steps solve roughly; the scale found is then solved to the tolerance and checked.
       const double want = *scene_.target_shift;
-      double s0 = 0, d0 = 0, s1 = 1, d1 = targetShift();
-      for (int it = 0; it < 12 && std::abs(d1 - want) > 1e-3 * want; ++it) {
-        const double slope = (d1 - d0) / (s1 - s0);
+      const double accuracy = rough ? 1e-2 : 1e-3;
+      const auto& el = body.mesh().element(target->element);
+      bool final_solve = rough;
+      for (int it = 0;; ++it) {
+        const Vec3 d = targetMotion();
+        if (std::abs(d.norm() - want) <= 0.5 * accuracy * want) {
+          if (final_solve) break;
+          solveContact();
+          final_solve = true;
+          if (std::abs(targetMotion().norm() - want) <= accuracy * want) break;
+          continue;
+        }
+        if (it == 12)
+          throw NumericalError(-1, "brain shift: could not reach target_shift " + std::to_string(want) + " m (got " +
+                                       std::to_string(d.norm()) + " m)");
+        StepStats st;
+        const VecX w = body.tangentSolve(extra, unit, st);
+        res.factorizations += st.factorizations;
+        res.factor_ms += st.factor_ms + st.assemble_ms;
+        res.solve_ms += st.solve_ms;
+        Vec3 dw = Vec3::Zero();
+        for (int a = 0; a < 8; ++a) dw += target->weights[a] * node3(w, el[a]);
+        const double slope = d.norm() > 0 ? d.normalized().dot(dw) : dw.norm();
         if (!(slope > 0)) throw NumericalError(-1, "brain shift: the target does not move with the load");
-        double s2 = s1 + (want - d1) / slope;
-        s2 = std::clamp(s2, 0.25 * s1, 4 * s1);
-        if (s2 > 1e3)
+        const double next = std::clamp(applied + (want - d.norm()) / slope, 0.25 * applied, 4 * applied);
+        if (next > 1e3)
           throw NumericalError(-1, "brain shift: target_shift " + std::to_string(want) +
                                        " m is out of reach (the skull and clamps hold the target)");
-        solveAt(s2);
-        s0 = s1;
-        d0 = d1;
-        s1 = s2;
-        d1 = targetShift();
+        setScale(next);
+        // Rough steps until the first precise solve; precise ones after it (a rough solve's
+        // error could exceed the accuracy asked for).
+        solveContact(!final_solve || rough);
       }
-      if (std::abs(d1 - want) > 1e-2 * want)
-        throw NumericalError(-1, "brain shift: could not reach target_shift " + std::to_string(want) + " m (got " +
-                                     std::to_string(d1) + " m)");
-      res.load_scale = s1;
+      res.load_scale = applied;
     }
   } catch (const NumericalError& e) {
     throw NumericalError(0, std::string(e.what()) + " (brain-shift pre-step)");
@@ -197,12 +246,19 @@ BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target
     contact(body, body.positions(), f, K);
     body.addExternalForce(f);
     Vec3 total = Vec3::Zero();
+    touching_.clear();
+    anchor_.clear();
     for (size_t v = 0; v < lambda_.size(); ++v) {
       const EmbeddedPoint& ep = organ_->vertex(static_cast<int>(v));
-      const double g = normal_[v].dot(ep.interpolate(body.mesh(), body.positions()) - rest_[v]) - offset_[v];
+      const Vec3 p = ep.interpolate(body.mesh(), body.positions());
+      const double g = normal_[v].dot(p - rest_[v]) - offset_[v];
       const double l = std::max(0.0, lambda_[v] + k_[v] * g);
       skull_force_[v] = -l * normal_[v];
       total += skull_force_[v];
+      if (l > 0) {
+        touching_.push_back(static_cast<int>(v));
+        anchor_.push_back(p);
+      }
     }
     res.skull_force = total.norm();
     res.max_penetration = penetration(body, res.contacts);
@@ -212,6 +268,8 @@ BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target
   const VecX u = body.displacements();
   for (int i = 0; i < body.mesh().numNodes(); ++i) res.max_displacement = std::max(res.max_displacement, node3(u, i).norm());
   res.done = true;
+  res.passes = 1;
+  res.dofs = body.mesh().numDofs();
   res.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   return res;
 }
@@ -223,6 +281,31 @@ VecX BrainShift::skullLoad(const TissueBody& body, const EmbeddedSurface& organ)
     const EmbeddedPoint& ep = organ.vertex(static_cast<int>(v));
     const auto& el = body.mesh().element(ep.element);
     for (int a = 0; a < 8; ++a) node3(f, el[a]) += ep.weights[a] * skull_force_[v];
+  }
+  return f;
+}
+
+}  // namespace needle_sim
+
+namespace needle_sim {
+
+ElementBlocks BrainShift::supportStiffness(const EmbeddedSurface& organ) const {
+  ElementBlocks K;
+  if (!hasSupport()) return K;
+  std::map<int, size_t> slot;
+  for (int v : touching_) addVertexBlock(organ.vertex(v), k_[v] * normal_[v] * normal_[v].transpose(), slot, K);
+  return K;
+}
+
+VecX BrainShift::supportAnchorLoad(const TissueBody& body, const EmbeddedSurface& organ) const {
+  VecX f = VecX::Zero(body.mesh().numDofs());
+  if (!hasSupport()) return f;
+  for (size_t i = 0; i < touching_.size(); ++i) {
+    const int v = touching_[i];
+    const EmbeddedPoint& ep = organ.vertex(v);
+    const Vec3 fa = k_[v] * normal_[v] * normal_[v].dot(anchor_[i]);
+    const auto& el = body.mesh().element(ep.element);
+    for (int a = 0; a < 8; ++a) node3(f, el[a]) += ep.weights[a] * fa;
   }
   return f;
 }

@@ -62,14 +62,68 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
     for (auto& n : needles_) nd.push_back(n.get());
     interaction_ = std::make_unique<NeedleTissueInteraction>(*scene.interaction, *tissue_, nd, organ_.get());
   }
-  if (scene.brain_shift) {
-    shift_ = std::make_unique<BrainShift>(*scene.brain_shift, scene.tissue, organ_.get());
-    const int t = scene.brain_shift->target.empty() ? -1 : findTarget(scene.brain_shift->target);
-    shift_result_ = shift_->apply(*tissue_, t >= 0 ? &targets_[t] : nullptr);
-    if (t >= 0) shift_result_.target = scene.brain_shift->target;
-    checkState();
-  }
+  if (scene.brain_shift) preStep();
   for (int i = 0; i < numTargets(); ++i) target_start_.push_back(targetPosition(i));
+}
+
+void Simulation::preStep() {
+  const auto t0 = std::chrono::steady_clock::now();
+  shift_ = std::make_unique<BrainShift>(*scene_.brain_shift, scene_.tissue, organ_.get());
+  const int t = scene_.brain_shift->target.empty() ? -1 : findTarget(scene_.brain_shift->target);
+  BrainShiftResult total;
+  double scale = 1.0;
+  // On an adaptive mesh: solve, estimate, refine/coarsen, and solve again on the new mesh
+  // (from the shifted state and the last load scale) until the mesh stays as it is, so the
+  // insertion starts from the shift computed on the mesh the estimate asks for.
+  // The passes before the last solve roughly (the estimate needs the stress pattern, not
+  // the last digit); the last one, on the final mesh, solves to the tolerance and scales the
+  // load for target_shift, starting from the rough pass's state.
+  bool rough = adaptation_ != nullptr;
+  for (int pass = 1;; ++pass) {
+    const BrainShiftResult r = shift_->apply(*tissue_, t >= 0 ? &targets_[t] : nullptr, scale, rough);
+    const int iterations = total.newton_iterations + r.newton_iterations;
+    const int factorizations = total.factorizations + r.factorizations;
+    const int solves = total.load_solves + r.load_solves, updates = total.multiplier_updates + r.multiplier_updates;
+    const double fms = total.factor_ms + r.factor_ms, sms = total.solve_ms + r.solve_ms;
+    total = r;
+    total.newton_iterations = iterations;
+    total.factorizations = factorizations;
+    total.load_solves = solves;
+    total.multiplier_updates = updates;
+    total.factor_ms = fms;
+    total.solve_ms = sms;
+    total.passes = pass;
+    scale = r.load_scale;
+    checkState();
+    if (!rough) break;
+    const AdaptationResult a = pass < kMaxShiftPasses ? adaptation_->adapt(errorEstimate()) : AdaptationResult{};
+    if (a.changed) {
+      rebuildTissue(false);
+    } else {
+      // Final solve on this mesh, from the rough state (apply adds its loads afresh).
+      rough = false;
+      tissue_->resetExternalForce();
+    }
+    shift_->rebind(organ_.get());
+  }
+  if (t >= 0) total.target = scene_.brain_shift->target;
+  applySupport();
+  if (adaptation_) {
+    // From now on the mesh adapts to the insertion: the estimate measures the stress change
+    // since the shift, and the shift's refinement stays.
+    adaptation_->keepCurrentRefinement();
+    reference_ = tissue_->positions();
+    estimator_.reset();
+    estimate_step_ = -1;
+  }
+  total.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  shift_result_ = total;
+}
+
+void Simulation::applySupport() {
+  if (!shift_ || !organ_ || !shift_->hasSupport()) return;
+  tissue_->setSupport(shift_->supportStiffness(*organ_));
+  tissue_->addExternalForce(shift_->supportAnchorLoad(*tissue_, *organ_));
 }
 
 void Simulation::setFractions(HexMesh& mesh, const std::vector<int>& cells) {
@@ -126,6 +180,35 @@ void Simulation::embedTargets() {
   }
 }
 
+int Simulation::setTarget(const std::string& name, const Vec3& point) {
+  if (name.empty()) throw InputError("", "set_target.name", "must not be empty");
+  if (!tissue_) throw InputError("", "set_target", "the scene has no tissue");
+  if (!point.allFinite()) throw InputError("", "set_target.point", "must be finite");
+  EmbeddedPoint ep;
+  const bool outside = immersed_ && !immersed_->insideTest().inside(point);
+  if (outside || !PointLocator(tissue_->mesh()).locate(point, ep)) {
+    std::ostringstream m;
+    m << "point (" << point.transpose() << ") lies outside the tissue" << (immersed_ ? " surface" : "");
+    throw InputError("", "set_target.point", m.str());
+  }
+  TargetScene t;
+  t.name = name;
+  t.key = "set_target";
+  t.point = point;
+  int i = findTarget(name);
+  if (i < 0) {
+    i = numTargets();
+    scene_.targets.push_back(t);
+    targets_.push_back(ep);
+    target_start_.push_back(Vec3::Zero());
+  } else {
+    scene_.targets[i] = t;
+    targets_[i] = ep;
+  }
+  target_start_[i] = targetPosition(i);
+  return i;
+}
+
 int Simulation::findTarget(const std::string& name) const {
   for (int i = 0; i < numTargets(); ++i)
     if (scene_.targets[i].name == name) return i;
@@ -141,6 +224,7 @@ void Simulation::applyPersistentLoads() {
   VecX f = shift_result_.load_scale * shift_->unitLoad(*tissue_);
   if (organ_) f += shift_->skullLoad(*tissue_, *organ_);
   tissue_->addExternalForce(f);
+  applySupport();
 }
 
 std::vector<int> Simulation::elementLevels() const {
@@ -152,15 +236,16 @@ const ErrorEstimate& Simulation::errorEstimate() const {
   if (estimate_step_ != step_) {
     estimate_ever_ = true;
     if (!estimator_) estimator_ = std::make_unique<SprEstimator>(tissue_->model());
-    estimate_ = estimator_->estimate(tissue_->positions());
+    estimate_ = estimator_->estimate(tissue_->positions(), reference_.size() ? &reference_ : nullptr);
     estimate_step_ = step_;
   }
   return estimate_;
 }
 
-void Simulation::rebuildTissue() {
+void Simulation::rebuildTissue(bool persistent_loads) {
   const VecX x = adaptation_->transfer(tissue_->positions());
-  const VecX v = adaptation_->transfer(tissue_->velocities());
+  const VecX v = persistent_loads ? adaptation_->transfer(tissue_->velocities()) : VecX::Zero(x.size());
+  if (reference_.size()) reference_ = adaptation_->transfer(reference_);
   const auto& act = adaptation_->active();
   estimator_.reset();
   estimate_step_ = -1;
@@ -169,7 +254,7 @@ void Simulation::rebuildTissue() {
   tissue_ = std::make_unique<TissueBody>(std::move(mesh), scene_.tissue, scene_.solver, scene_.file, act.hanging);
   tissue_->setState(x, v);
   if (immersed_) organ_ = std::make_unique<EmbeddedSurface>(scene_.tissue.geometry.surface, tissue_->mesh());
-  applyPersistentLoads();
+  if (persistent_loads) applyPersistentLoads();
   embedProbes();
   embedTargets();
   if (interaction_) interaction_->rebind(*tissue_, organ_.get());

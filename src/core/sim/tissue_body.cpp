@@ -99,6 +99,7 @@ TissueBody::TissueBody(HexMesh mesh, const TissueScene& tissue, const SolverScen
       if (count == 0) throw InputError(file, tl.key + ".region", "contains no boundary face of the tissue");
     }
   }
+  scene_f_ext_ = f_ext_;
   dofs_.gather(mass_, mass_free_);
   solver_ = std::make_unique<SystemSolver>(*model_, dofs_, settings_.linear);
   dv_free_.setZero(dofs_.numFree());
@@ -182,6 +183,8 @@ StepStats TissueBody::freeMotion(double h) {
   model_->addInternalForce(x_, f);
   // f - h K v - C v = f - (h + beta) K v - alpha M v
   model_->addStiffnessProduct(v_, -(h + beta), f);
+  addSupportProduct(x_, 1.0, f);
+  addSupportProduct(v_, h + beta, f);
   f.array() -= alpha * mass_.array() * v_.array();
   VecX b;
   dofs_.gather(f, b);
@@ -193,8 +196,41 @@ StepStats TissueBody::freeMotion(double h) {
   return st;
 }
 
+namespace {
+// Restores the solver's persistent extra stiffness (the support) and drops its factor when
+// a solve with temporary blocks ends.
+struct Detach {
+  SystemSolver& s;
+  const ElementBlocks* base;
+  ~Detach() {
+    s.setExtraStiffness(base);
+    s.invalidate();
+  }
+};
+}  // namespace
+
 StepStats TissueBody::solveStatic() {
   return solveStatic(ExtraForce{}, settings_.static_tolerance, settings_.static_max_iterations);
+}
+
+VecX TissueBody::tangentSolve(const ExtraForce& extra, const VecX& rhs, StepStats& st) {
+  ElementBlocks blocks;
+  model_->updateRotations(x_);
+  if (extra) {
+    VecX f = VecX::Zero(x_.size());
+    extra(x_, f, blocks);
+    blocks.element.insert(blocks.element.end(), support_.element.begin(), support_.element.end());
+    blocks.K.insert(blocks.K.end(), support_.K.begin(), support_.K.end());
+    solver_->setExtraStiffness(&blocks);
+  }
+  Detach detach{*solver_, supportOrNull()};
+  solver_->invalidate();
+  VecX b, y, out;
+  dofs_.gather(rhs, b);
+  y.setZero(b.size());
+  accumulate(st, solver_->solve(mass_free_, 0.0, 1.0, b, y));
+  dofs_.scatter(y, out);
+  return out;
 }
 
 StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_iterations) {
@@ -207,21 +243,18 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     dofs_.gather(f_ext_, fe);
     ref = fe.norm();
   }
-  struct Detach {  // the solver must not keep a pointer to `blocks` past this call
-    SystemSolver& s;
-    ~Detach() {
-      s.setExtraStiffness(nullptr);
-      s.invalidate();
-    }
-  } detach{*solver_};
+  Detach detach{*solver_, supportOrNull()};  // the solver must not keep `blocks` past this call
   // Residual (free DOFs) at the current x_, with the extra terms' blocks.
   auto residual = [&](VecX& out) {
     model_->updateRotations(x_);
     r_full = f_ext_;
     model_->addInternalForce(x_, r_full);
+    addSupportProduct(x_, 1.0, r_full);
     if (extra) {
       blocks.clear();
       extra(x_, r_full, blocks);
+      blocks.element.insert(blocks.element.end(), support_.element.begin(), support_.element.end());
+      blocks.K.insert(blocks.K.end(), support_.K.begin(), support_.K.end());
     }
     dofs_.gather(r_full, out);
     return out.norm();
@@ -292,6 +325,23 @@ void TissueBody::setState(const VecX& x, const VecX& v) {
 }  // namespace needle_sim
 
 namespace needle_sim {
+void TissueBody::setSupport(ElementBlocks blocks) {
+  support_ = std::move(blocks);
+  solver_->setExtraStiffness(supportOrNull());
+  solver_->invalidate();
+  columns_.clear();
+}
+
+void TissueBody::addSupportProduct(const VecX& y, double c, VecX& f) const {
+  Eigen::Matrix<double, 24, 1> ye;
+  for (size_t i = 0; i < support_.element.size(); ++i) {
+    const auto& el = mesh_->element(support_.element[i]);
+    for (int a = 0; a < 8; ++a) ye.segment<3>(3 * a) = node3(y, el[a]);
+    const Eigen::Matrix<double, 24, 1> w = support_.K[i] * ye;
+    for (int a = 0; a < 8; ++a) node3(f, el[a]) -= c * w.segment<3>(3 * a);
+  }
+}
+
 void TissueBody::setPrescribedPositions(const VecX& x) {
   for (int i = 0; i < dofs_.numFull(); ++i)
     if (dofs_.prescribed(i)) x_[i] = x[i];

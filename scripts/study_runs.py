@@ -1,0 +1,50 @@
+"""Shared by the study scripts: run a list of scenes with the needle_sim tool (or reuse runs
+whose summary.json says ok) and load their summaries and time series."""
+import argparse
+import csv
+import json
+import os
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENES = os.path.join(ROOT, "config", "scenes")
+
+
+def parse_args(doc, name):
+    """--out (results/<name>), --tool, --reuse; checks the tool and makes the output folder."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default=os.path.join(ROOT, "results", name))
+    ap.add_argument("--tool", default=os.path.join(ROOT, "build", "devel", "lib", "needle_sim", "needle_sim"))
+    ap.add_argument("--reuse", action="store_true", help="keep runs whose summary.json says ok")
+    args = ap.parse_args()
+    if not os.access(args.tool, os.X_OK):
+        sys.exit(f"{name}: no needle_sim tool at {args.tool} (build first: bash scripts/test.sh)")
+    os.makedirs(args.out, exist_ok=True)
+    return args
+
+
+def slug(name):
+    return "".join(c if c.isalnum() else "_" for c in name).strip("_")
+
+
+def run_all(tool, scenes_dir, out, runs, reuse):
+    """runs: (name, scene file, extra arguments). Returns {name: (summary, run_dir, rows)}."""
+    results = {}
+    for name, scene, extra in runs:
+        d = os.path.join(out, slug(name))
+        summary_path = os.path.join(d, "summary.json")
+        ok = False
+        if reuse and os.path.exists(summary_path):
+            with open(summary_path) as f:
+                ok = json.load(f).get("status") == "ok"
+        if not ok:
+            cmd = [tool, "run", os.path.join(scenes_dir, scene), "--out", d, "--quiet"] + list(extra)
+            print("+", " ".join(cmd), flush=True)
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        with open(summary_path) as f:
+            summary = json.load(f)
+        with open(os.path.join(d, "timeseries.csv"), newline="") as f:
+            rows = list(csv.DictReader(f))
+        results[name] = (summary, d, rows)
+    return results
