@@ -5,7 +5,11 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
+#include <fstream>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/error.hpp"
@@ -37,6 +41,37 @@ TEST(TriangleMesh, BoxInEveryFormatIsTheSameClosedSurface) {
     EXPECT_NEAR(m->volume(), 0.04 * 0.02 * 0.02, 1e-18);
     EXPECT_LT((m->centroid() - Vec3(0.02, 0.01, 0.01)).norm(), 1e-15);
   }
+}
+
+// OFF is read by hand (assimp's OFF importer aborted and read out of bounds on malformed
+// files found by fuzz_mesh): quads are fanned into triangles, and broken files are
+// InputErrors naming the problem.
+TEST(TriangleMesh, OffFilesAreReadOrRejectedClearly) {
+  const std::string path = "/tmp/needle_sim_test_off.off";
+  auto write = [&](const std::string& text) { std::ofstream(path) << text; };
+  const std::string cube_quads =
+      "OFF\n8 6 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n0 0 1\n1 0 1\n1 1 1\n0 1 1\n"
+      "4 0 3 2 1\n4 4 5 6 7\n4 0 1 5 4\n4 1 2 6 5\n4 2 3 7 6\n4 3 0 4 7\n";
+  write(cube_quads);
+  const TriangleMesh m = loadTriangleMesh(path, SurfaceTransform{}, "", "test");
+  EXPECT_EQ(m.numTriangles(), 12);
+  EXPECT_NEAR(m.volume(), 1.0, 1e-12);
+  for (const auto& [text, problem] : std::vector<std::pair<std::string, std::string>>{
+           {"OFF\n8 6 0\n0 0 0\n", "vertex 1"},
+           {"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n", "out of range"},
+           {"NOFF\n3 1 0\n", "not an OFF file"},
+           {"OFF\n-3 1 0\n", "implausible"},
+           {"OFF\n3 1 0\n0 0 0\n1 0 nan\n0 1 0\n3 0 1 2\n", "vertex 1"}}) {
+    SCOPED_TRACE(text);
+    write(text);
+    try {
+      loadTriangleMesh(path, SurfaceTransform{}, "", "test");
+      ADD_FAILURE() << "accepted";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find(problem), std::string::npos) << e.what();
+    }
+  }
+  std::remove(path.c_str());
 }
 
 TEST(TriangleMesh, DemoBrainIsClosedDespiteNonManifoldEdges) {

@@ -80,6 +80,18 @@ TEST(Scene, BadOverridesAreInputErrors) {
   }
 }
 
+// Found by fuzz_scene: a key that is itself a list or map (YAML allows it) escaped as a
+// yaml-cpp conversion exception; it is an InputError naming where it is.
+TEST(Scene, NonScalarKeyIsAnInputError) {
+  try {
+    parseScene("name: x\ntime: {dt: 0.01, duration: 1.0}\ntissue:\n  ? [a, b]\n  : 1\n", "fuzz.yaml");
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_EQ(e.key(), "tissue");
+    EXPECT_NE(std::string(e.what()).find("not a name"), std::string::npos) << e.what();
+  }
+}
+
 TEST(Scene, MissingFileIsAnInputError) {
   EXPECT_THROW(loadScene(kSrc + "/config/scenes/does_not_exist.yaml"), InputError);
 }

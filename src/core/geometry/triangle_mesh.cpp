@@ -5,6 +5,8 @@
 #include <assimp/scene.h>
 
 #include <algorithm>
+#include <array>
+#include <cctype>
 #include <charconv>
 #include <cstdlib>
 #include <cmath>
@@ -13,6 +15,7 @@
 #include <limits>
 #include <map>
 #include <sstream>
+#include <vector>
 
 #include "needle_sim/core/error.hpp"
 
@@ -149,6 +152,44 @@ double widen(float f) {
   *r.ptr = '\0';
   return std::strtod(buf, nullptr);
 }
+
+// A mesh as read: vertices and polygons (vertex indices, unchecked).
+struct RawMesh {
+  std::vector<std::array<double, 3>> vertices;
+  std::vector<std::vector<long long>> faces;
+};
+
+// OFF ("OFF", counts "nv nf ne", nv vertices, nf faces "n i1 ... in"; '#' comments). Read
+// here rather than by assimp, whose OFF importer aborts or reads out of bounds on malformed
+// files (found by fuzz_mesh). Returns an empty string or the problem.
+std::string readOff(const std::string& path, RawMesh& out) {
+  std::ifstream in(path);
+  std::stringstream tokens;
+  std::string line;
+  while (std::getline(in, line)) tokens << line.substr(0, line.find('#')) << '\n';
+  std::string head;
+  if (!(tokens >> head) || head != "OFF") return "not an OFF file (no 'OFF' header; NOFF/COFF are not read)";
+  long long nv = 0, nf = 0, ne = 0;
+  if (!(tokens >> nv >> nf >> ne)) return "OFF: missing vertex/face/edge counts";
+  constexpr long long kMax = 100000000;
+  if (nv < 0 || nf < 0 || nv > kMax || nf > kMax) return "OFF: implausible vertex or face count";
+  out.vertices.reserve(static_cast<size_t>(std::min(nv, 1000000LL)));
+  for (long long i = 0; i < nv; ++i) {
+    std::array<double, 3> v{};
+    if (!(tokens >> v[0] >> v[1] >> v[2])) return "OFF: vertex " + std::to_string(i) + " is missing or not numeric";
+    out.vertices.push_back(v);
+  }
+  for (long long f = 0; f < nf; ++f) {
+    long long n = 0;
+    if (!(tokens >> n) || n < 0 || n > 1000) return "OFF: face " + std::to_string(f) + " has no valid vertex count";
+    std::vector<long long> face(static_cast<size_t>(n));
+    for (auto& i : face)
+      if (!(tokens >> i)) return "OFF: face " + std::to_string(f) + " is missing vertex indices";
+    out.faces.push_back(std::move(face));
+    std::getline(tokens, line);  // per-face colour, if any
+  }
+  return "";
+}
 }  // namespace
 
 TriangleMesh loadTriangleMesh(const std::string& path, const SurfaceTransform& t, const std::string& scene_file,
@@ -156,43 +197,66 @@ TriangleMesh loadTriangleMesh(const std::string& path, const SurfaceTransform& t
   auto fail = [&](const std::string& problem) { throw InputError(scene_file, key, "'" + path + "': " + problem); };
   if (!std::filesystem::is_regular_file(path)) fail("no such mesh file");
   if (!std::ifstream(path)) fail("cannot open the mesh file");
-  Assimp::Importer importer;
-  // Faces are all we need; vertices with equal positions are welded so that edges match.
-  importer.SetPropertyInteger(AI_CONFIG_PP_RVC_FLAGS, aiComponent_NORMALS | aiComponent_TEXCOORDS | aiComponent_COLORS |
-                                                          aiComponent_MATERIALS | aiComponent_TANGENTS_AND_BITANGENTS);
-  const aiScene* sc = importer.ReadFile(path, aiProcess_Triangulate | aiProcess_RemoveComponent |
-                                                  aiProcess_JoinIdenticalVertices | aiProcess_PreTransformVertices |
-                                                  aiProcess_SortByPType);
-  if (!sc || !sc->mRootNode) fail(std::string("cannot read the mesh: ") + importer.GetErrorString());
+  // Read: OFF by hand, the rest by assimp (faces only; no post-processing that could abort).
+  std::vector<RawMesh> raw;
+  std::string ext = std::filesystem::path(path).extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
+  if (ext == ".off") {
+    raw.emplace_back();
+    const std::string problem = readOff(path, raw.back());
+    if (!problem.empty()) fail("cannot read the mesh: " + problem);
+  } else {
+    Assimp::Importer importer;
+    importer.SetPropertyInteger(AI_CONFIG_PP_RVC_FLAGS, aiComponent_NORMALS | aiComponent_TEXCOORDS |
+                                                            aiComponent_COLORS | aiComponent_MATERIALS |
+                                                            aiComponent_TANGENTS_AND_BITANGENTS);
+    // No aiProcess_Triangulate: on malformed polygons Debian's assimp aborts the process in
+    // an assertion of that step (found by fuzz_mesh); polygons are fanned below instead.
+    const aiScene* sc = importer.ReadFile(path, aiProcess_RemoveComponent | aiProcess_PreTransformVertices);
+    if (!sc || !sc->mRootNode) fail(std::string("cannot read the mesh: ") + importer.GetErrorString());
+    for (unsigned m = 0; m < sc->mNumMeshes; ++m) {
+      const aiMesh* mesh = sc->mMeshes[m];
+      RawMesh r;
+      for (unsigned i = 0; i < mesh->mNumVertices; ++i) {
+        // assimp stores single precision; the shortest decimal of each float recovers what
+        // the file said (0.04, not 0.0399999991) whenever it had at most 7 digits.
+        const auto& v = mesh->mVertices[i];
+        r.vertices.push_back({widen(v.x), widen(v.y), widen(v.z)});
+      }
+      for (unsigned f = 0; f < mesh->mNumFaces; ++f)
+        r.faces.emplace_back(mesh->mFaces[f].mIndices, mesh->mFaces[f].mIndices + mesh->mFaces[f].mNumIndices);
+      raw.push_back(std::move(r));
+    }
+  }
+  // Vertices with equal positions are welded (across the file's meshes) so that edges match;
+  // points and lines are skipped; a polygon (planar, convex: quads of OBJ/OFF files) becomes
+  // a fan of triangles.
   std::vector<Vec3> V;
   std::vector<Triangle> T;
-  std::map<std::array<double, 3>, int> weld;  // across the file's meshes
-  for (unsigned m = 0; m < sc->mNumMeshes; ++m) {
-    const aiMesh* mesh = sc->mMeshes[m];
-    std::vector<int> id(mesh->mNumVertices);
-    for (unsigned i = 0; i < mesh->mNumVertices; ++i) {
-      // assimp stores single precision; the shortest decimal of each float recovers what
-      // the file said (0.04, not 0.0399999991) whenever it had at most 7 digits.
-      const auto& v = mesh->mVertices[i];
-      const std::array<double, 3> k{widen(v.x), widen(v.y), widen(v.z)};
-      auto it = weld.find(k);
+  std::map<std::array<double, 3>, int> weld;
+  for (const RawMesh& r : raw) {
+    std::vector<int> id(r.vertices.size());
+    for (size_t i = 0; i < r.vertices.size(); ++i) {
+      for (double c : r.vertices[i])  // before the map: NaN keys would break its ordering
+        if (!std::isfinite(c)) fail("has non-finite vertex coordinates");
+      auto it = weld.find(r.vertices[i]);
       if (it == weld.end()) {
-        it = weld.emplace(k, static_cast<int>(V.size())).first;
-        V.emplace_back(k[0], k[1], k[2]);
+        it = weld.emplace(r.vertices[i], static_cast<int>(V.size())).first;
+        V.emplace_back(r.vertices[i][0], r.vertices[i][1], r.vertices[i][2]);
       }
       id[i] = it->second;
     }
-    for (unsigned f = 0; f < mesh->mNumFaces; ++f) {
-      const aiFace& face = mesh->mFaces[f];
-      if (face.mNumIndices != 3) continue;  // points and lines
-      const Triangle tr{id[face.mIndices[0]], id[face.mIndices[1]], id[face.mIndices[2]]};
-      if (tr[0] == tr[1] || tr[1] == tr[2] || tr[0] == tr[2]) continue;  // collapsed by welding
-      T.push_back(tr);
-    }
+    const auto n = static_cast<long long>(id.size());
+    for (const auto& face : r.faces)
+      for (size_t k = 1; k + 1 < face.size(); ++k) {
+        const long long a = face[0], b = face[k], c = face[k + 1];
+        if (a < 0 || b < 0 || c < 0 || a >= n || b >= n || c >= n) fail("has a face with a vertex index out of range");
+        const Triangle tr{id[a], id[b], id[c]};
+        if (tr[0] == tr[1] || tr[1] == tr[2] || tr[0] == tr[2]) continue;  // collapsed by welding
+        T.push_back(tr);
+      }
   }
   if (T.empty()) fail("contains no triangles");
-  for (const auto& v : V)
-    if (!v.allFinite()) fail("has non-finite vertex coordinates");
   TriangleMesh mesh(std::move(V), std::move(T));
   std::array<int, 2> e{};
   const long open = mesh.unmatchedEdges(&e);

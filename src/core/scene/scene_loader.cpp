@@ -62,6 +62,7 @@ class Reader {
   void checkKeys(const YAML::Node& n, const std::string& path, const std::vector<std::string>& allowed) const {
     requireMap(n, path);
     for (const auto& kv : n) {
+      if (!kv.first.IsScalar()) fail(path, std::string("has a key that is not a name (a ") + typeName(kv.first) + ")");
       const std::string k = kv.first.as<std::string>();
       if (std::find(allowed.begin(), allowed.end(), k) == allowed.end()) {
         std::string list;
@@ -814,7 +815,12 @@ Scene parseScene(const std::string& text, const std::string& file, const std::ve
   } catch (const YAML::Exception& e) {
     throw InputError(file, "", "not valid YAML: " + e.msg + " (line " + std::to_string(e.mark.line + 1) + ")");
   }
-  return build(root, file, overrides);
+  try {
+    return build(root, file, overrides);
+  } catch (const YAML::Exception& e) {
+    // Every read is checked; this is the safety net for a conversion the checks missed.
+    throw InputError(file, "", "unreadable value: " + e.msg + " (line " + std::to_string(e.mark.line + 1) + ")");
+  }
 }
 
 Scene loadScene(const std::string& path, const std::vector<std::string>& overrides) {
