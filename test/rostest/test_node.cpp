@@ -54,16 +54,7 @@ using needle_sim_test::waitFor;
 
 const double kBaseX = -0.035, kY = 0.01, kZ = 0.01;  // phantom_insertion_8x4x4.yaml
 
-geometry_msgs::PoseStamped pose(double x, double y = kY, double z = kZ) {
-  geometry_msgs::PoseStamped p;
-  p.header.stamp = ros::Time::now();
-  p.header.frame_id = "tissue";
-  p.pose.position.x = x;
-  p.pose.position.y = y;
-  p.pose.position.z = z;
-  p.pose.orientation.w = 1;  // x axis = the scene's rest axis
-  return p;
-}
+geometry_msgs::PoseStamped pose(double x, double y = kY, double z = kZ) { return needle_sim_test::basePose(x, y, z); }
 
 }  // namespace
 

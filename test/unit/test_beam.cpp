@@ -50,7 +50,7 @@ TEST(BeamSection, TubeProperties) {
 }
 
 TEST(Quaternion, ExpAndLogAreInverse) {
-  for (const Vec3 v : {Vec3(1e-14, 0, 0), Vec3(1e-6, -2e-7, 3e-6), Vec3(0.3, -1.2, 0.5), Vec3(0, 0, 3.1)}) {
+  for (const Vec3& v : {Vec3(1e-14, 0, 0), Vec3(1e-6, -2e-7, 3e-6), Vec3(0.3, -1.2, 0.5), Vec3(0, 0, 3.1)}) {
     EXPECT_LT((quaternionLog(quaternionExp(v)) - v).norm(), 1e-15 + 1e-13 * v.norm()) << v.transpose();
     EXPECT_NEAR(quaternionExp(v).norm(), 1.0, 1e-15);
   }

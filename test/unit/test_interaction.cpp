@@ -61,7 +61,9 @@ TEST(Interaction, BelowPunctureForceIndentsAndComesBack) {
     const auto s = sim.interaction()->state(0);
     ASSERT_NE(s, InsertionState::Punctured);
     ASSERT_NE(s, InsertionState::Inserted);
-    if (st.constraint_points == 0) EXPECT_EQ(st.constraint_iterations, 0);  // nothing to solve: skipped
+    if (st.constraint_points == 0) {
+      EXPECT_EQ(st.constraint_iterations, 0);  // nothing to solve: skipped
+    }
     if (const auto* c = find(sim, ConstraintKind::Puncture)) {
       contact = true;
       max_force = std::max(max_force, c->lambda[0]);

@@ -108,7 +108,9 @@ TEST(Refinement, TwoToOneBalanceAndPartitionOfUnity) {
       max_l[n] = std::max(max_l[n], a.level[e]);
     }
   for (int n = 0; n < a.mesh.numNodes(); ++n)
-    if (!a.hanging[n].empty()) EXPECT_LE(max_l[n] - min_level[n], 1) << "hanging node " << n;
+    if (!a.hanging[n].empty()) {
+      EXPECT_LE(max_l[n] - min_level[n], 1) << "hanging node " << n;
+    }
   // P reproduces constants (partition of unity): all DOFs free.
   std::vector<std::vector<std::pair<int, double>>> dof_hanging(3 * a.mesh.numNodes());
   for (int n = 0; n < a.mesh.numNodes(); ++n)

@@ -66,7 +66,9 @@ class BrainShift {
   // start_scale: the load scale of the first solve (the previous pass's on a refined mesh).
   // rough: solves to a loose tolerance, target_shift to 1 % (a pass of the adaptive
   // pre-step whose state only feeds the error estimate and the next pass's scale).
-  BrainShiftResult apply(TissueBody& body, const EmbeddedPoint* target, double start_scale = 1.0, bool rough = false);
+  // calibrate: false skips target_shift (one solve at start_scale).
+  BrainShiftResult apply(TissueBody& body, const EmbeddedPoint* target, double start_scale = 1.0, bool rough = false,
+                         bool calibrate = true);
   // The organ surface embedded in a new mesh (same vertices): contact state carried over.
   void rebind(const EmbeddedSurface* organ) { organ_ = organ; }
   // Skull reaction per organ-surface vertex at the end of apply() (zero without contact).

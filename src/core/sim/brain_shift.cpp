@@ -137,7 +137,8 @@ double BrainShift::penetration(const TissueBody& body, int& active) const {
   return worst;
 }
 
-BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target, double start_scale, bool rough) {
+BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target, double start_scale, bool rough,
+                                   bool calibrate) {
   const auto t0 = std::chrono::steady_clock::now();
   BrainShiftResult res;
   const VecX unit = unitLoad(body);
@@ -189,10 +190,10 @@ BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target
     const int steps = at_rest ? scene_.load_steps : 1;
     for (int k = 1; k <= steps; ++k) {
       setScale(start_scale * k / steps);
-      solveContact(scene_.target_shift && target);  // rough when the scale is solved for next
+      solveContact(calibrate && scene_.target_shift && target);  // rough when the scale is solved for next
     }
     res.load_scale = applied;
-    if (scene_.target_shift && target) {
+    if (calibrate && scene_.target_shift && target) {
       // Newton on the load scale s for |d(s)| = target_shift, with the exact derivative at
       // each equilibrium (for its contact set): dd/ds = d^ . (K_t^-1 f_unit at the target),
       // one extra solve with the tangent. Converges in a few equilibria where a secant on s

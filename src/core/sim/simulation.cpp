@@ -80,7 +80,9 @@ void Simulation::preStep() {
   // load for target_shift, starting from the rough pass's state.
   bool rough = adaptation_ != nullptr;
   for (int pass = 1;; ++pass) {
-    const BrainShiftResult r = shift_->apply(*tissue_, t >= 0 ? &targets_[t] : nullptr, scale, rough);
+    // The coarse mesh's first pass only shows where to refine: its load scale (which the
+    // refined meshes change severalfold, the clamps holding more nodes) is not solved for.
+    const BrainShiftResult r = shift_->apply(*tissue_, t >= 0 ? &targets_[t] : nullptr, scale, rough, !(rough && pass == 1));
     const int iterations = total.newton_iterations + r.newton_iterations;
     const int factorizations = total.factorizations + r.factorizations;
     const int solves = total.load_solves + r.load_solves, updates = total.multiplier_updates + r.multiplier_updates;
