@@ -24,7 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from study_runs import SCENES, parse_args, run_all  # noqa: E402
+from study_runs import SCENES, parse_args, run_all, write_csv  # noqa: E402
 
 
 # name, scene file, overrides
@@ -86,11 +86,7 @@ def main():
     for t in table:
         t["speedup_vs_32"] = ref_wall / t["wall_s"]
 
-    keys = list(table[0].keys())
-    with open(os.path.join(args.out, "study.csv"), "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(table)
+    write_csv(os.path.join(args.out, "study.csv"), table)
     with open(os.path.join(args.out, "study.md"), "w") as f:
         f.write("| run | tissue DOFs max | wall s | speed-up vs 32x16x16 | step median ms | step max ms | "
                 "adaptivity share | probe error max | probe error time-mean | probe error at puncture |\n")

@@ -16,7 +16,6 @@ target_displacement_vs_step.png} and one run directory per scene (with --vtu for
 adaptive run: tissue.vtu, surface.vtp for ParaView); --reuse keeps runs whose summary.json
 says ok.
 """
-import csv
 import os
 import sys
 
@@ -26,7 +25,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from study_runs import SCENES, parse_args, run_all  # noqa: E402
+from study_runs import SCENES, parse_args, run_all, write_csv  # noqa: E402
 
 
 # name, scene file, extra arguments
@@ -71,11 +70,7 @@ def main():
         t["vs_fine_mm"] = t["final_distance_mm"] - fine["final_distance_mm"]
         t["speedup_vs_fine"] = fine["wall_s"] / t["wall_s"]
 
-    keys = list(table[0].keys())
-    with open(os.path.join(args.out, "study.csv"), "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(table)
+    write_csv(os.path.join(args.out, "study.csv"), table)
     with open(os.path.join(args.out, "study.md"), "w") as f:
         f.write("| run | tissue DOFs max | brain shift: DOFs, passes, s, load scale | STN shift mm | "
                 "step median ms | wall s | speed-up vs fine | final electrode-STN mm | vs fine mm | "

@@ -48,3 +48,11 @@ def run_all(tool, scenes_dir, out, runs, reuse):
             rows = list(csv.DictReader(f))
         results[name] = (summary, d, rows)
     return results
+
+
+def write_csv(path, table):
+    """table: a list of dicts with the same keys (the columns, in order)."""
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(table[0].keys()))
+        w.writeheader()
+        w.writerows(table)
