@@ -1,4 +1,5 @@
 #include "needle_sim/ros/simulator_ros.hpp"
+#include "needle_sim/sim/prediction.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -72,6 +73,13 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   pnh_.param("workspace_margin", workspace_margin_, 0.2);
   pnh_.param("as_fast_as_possible", as_fast_, false);
   pnh_.param("display_rate", display_rate_, 30.0);
+  pnh_.param("predict_dt", predict_dt_, 0.01);
+  pnh_.param("predict_sample_period", predict_sample_period_, 0.05);
+  pnh_.param("predict_max_steps", predict_max_steps_, 100000);
+  if (!(predict_dt_ > 0) || !std::isfinite(predict_dt_)) throw InputError("", "~predict_dt", "must be > 0");
+  if (!(predict_sample_period_ > 0) || !std::isfinite(predict_sample_period_))
+    throw InputError("", "~predict_sample_period", "must be > 0");
+  if (predict_max_steps_ < 1) throw InputError("", "~predict_max_steps", "must be >= 1");
   int blas_threads = 1;
   pnh_.param("blas_threads", blas_threads, 1);
   if (blas_threads < 1) throw InputError("", "~blas_threads", "must be >= 1");
@@ -118,6 +126,17 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   }
   reset_srv_ = nh_.advertiseService("reset", &SimulatorRos::onReset, this);
   set_target_srv_ = nh_.advertiseService("set_target", &SimulatorRos::onSetTarget, this);
+  {
+    ros::AdvertiseServiceOptions o = ros::AdvertiseServiceOptions::create<needle_sim::PredictInsertion>(
+        "predict",
+        [this](needle_sim::PredictInsertion::Request& q, needle_sim::PredictInsertion::Response& r) {
+          return onPredict(q, r);
+        },
+        ros::VoidConstPtr(), &predict_queue_);
+    predict_srv_ = nh_.advertiseService(o);
+    predict_spinner_ = std::make_unique<ros::AsyncSpinner>(1, &predict_queue_);
+    predict_spinner_->start();
+  }
   thread_ = std::thread(&SimulatorRos::worker, this);
   if (!as_fast_) timer_ = nh_.createTimer(ros::Duration(scene_.dt), &SimulatorRos::onTimer, this);
   ROS_INFO("needle_sim: scene '%s' (%s), %d DOFs, dt %g s, commands from %s", scene_.name.c_str(), scene_file_.c_str(),
@@ -125,6 +144,8 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
 }
 
 SimulatorRos::~SimulatorRos() {
+  predict_srv_.shutdown();
+  if (predict_spinner_) predict_spinner_->stop();  // waits for a prediction under way
   timer_.stop();
   {
     std::lock_guard<std::mutex> lk(queue_mutex_);
@@ -253,37 +274,126 @@ void SimulatorRos::acceptCommand(int needle, const Vec3& p, const Eigen::Quatern
   commands_.push_back({needle, c.pose, interval, at});
 }
 
-void SimulatorRos::onTrajectory(int needle, const needle_sim::NeedleTrajectory::ConstPtr& m) {
-  const std::string& name = scene_.needles[needle].name;
+std::string SimulatorRos::checkPlan(int needle, const needle_sim::NeedleTrajectory& m, const BasePose& from,
+                                   Plan& plan) const {
   const auto& nsc = scene_.needles[needle];
   const BasePose rest{nsc.base_position, nsc.base_direction, nsc.base_roll};
-  auto reject = [&](const std::string& why) {
-    ++rejected_;
-    ROS_WARN_THROTTLE(1.0, "needle_sim: %s/command_trajectory rejected: %s", name.c_str(), why.c_str());
-  };
-  if (m->waypoints.empty()) return reject("no waypoints");
-  std::lock_guard<std::mutex> lk(queue_mutex_);
-  Plan plan{needle, {}};
-  BasePose prev = last_pose_[needle];
+  if (m.waypoints.empty()) return "no waypoints";
+  plan = Plan{needle, {}};
+  BasePose prev = from;
   double t_prev = 0;
-  for (size_t k = 0; k < m->waypoints.size(); ++k) {
-    const auto& w = m->waypoints[k];
+  for (size_t k = 0; k < m.waypoints.size(); ++k) {
+    const auto& w = m.waypoints[k];
     const double t = w.time_from_start.toSec();
     if (!std::isfinite(t) || t < 0 || (k > 0 && t <= t_prev))
-      return reject("waypoint " + std::to_string(k) + ": time_from_start not increasing");
+      return "waypoint " + std::to_string(k) + ": time_from_start not increasing";
     const Vec3 p(w.pose.position.x, w.pose.position.y, w.pose.position.z);
     const Eigen::Quaterniond q(w.pose.orientation.w, w.pose.orientation.x, w.pose.orientation.y, w.pose.orientation.z);
     // A plan is not silently changed: a waypoint too fast for ~max_speed rejects it.
     const CommandCheck c =
         checkCommand(p, q, prev, rest, std::max(t - t_prev, scene_.dt), max_speed_, lo_, hi_, workspace_margin_);
-    if (c.verdict != CommandCheck::Verdict::Accept) return reject("waypoint " + std::to_string(k) + ": " + c.reason);
+    if (c.verdict != CommandCheck::Verdict::Accept) return "waypoint " + std::to_string(k) + ": " + c.reason;
     plan.waypoints.emplace_back(t, c.pose);
     prev = c.pose;
     t_prev = t;
   }
-  last_pose_[needle] = prev;
+  return "";
+}
+
+void SimulatorRos::onTrajectory(int needle, const needle_sim::NeedleTrajectory::ConstPtr& m) {
+  std::lock_guard<std::mutex> lk(queue_mutex_);
+  Plan plan;
+  const std::string why = checkPlan(needle, *m, last_pose_[needle], plan);
+  if (!why.empty()) {
+    ++rejected_;
+    ROS_WARN_THROTTLE(1.0, "needle_sim: %s/command_trajectory rejected: %s", scene_.needles[needle].name.c_str(),
+                      why.c_str());
+    return;
+  }
+  last_pose_[needle] = plan.waypoints.back().second;
   last_stamp_[needle] = ros::Time(0);
   plans_.push_back(std::move(plan));
+}
+
+bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_sim::PredictInsertion::Response& res) {
+  const auto w0 = ros::WallTime::now();
+  res.success = false;
+  res.final_target_tip_distance = std::numeric_limits<double>::quiet_NaN();
+  auto refuse = [&](const std::string& why) {
+    res.message = why;
+    ROS_WARN("needle_sim: predict refused: %s", why.c_str());
+    return true;
+  };
+  int needle = req.needle.empty() ? 0 : -1;
+  for (int i = 0; i < static_cast<int>(scene_.needles.size()) && needle < 0; ++i)
+    if (scene_.needles[i].name == req.needle) needle = i;
+  if (needle < 0 || needle >= static_cast<int>(scene_.needles.size()))
+    return refuse("needle: no needle named '" + req.needle + "'");
+  InsertionPlan plan;
+  plan.needle = needle;
+  plan.duration = req.duration;
+  plan.dt = req.dt > 0 ? req.dt : predict_dt_;
+  plan.sample_period = req.sample_period > 0 ? req.sample_period : predict_sample_period_;
+  if (!std::isfinite(req.dt) || req.dt < 0) return refuse("dt: must be finite and >= 0");
+  if (!std::isfinite(req.sample_period) || req.sample_period < 0) return refuse("sample_period: must be finite and >= 0");
+  std::unique_ptr<Simulation> snapshot;
+  int target = -1;
+  {
+    // The state of now, copied under the lock (about a millisecond); the prediction runs
+    // without it, so the live simulation goes on meanwhile.
+    std::lock_guard<std::mutex> lk(sim_mutex_);
+    if (!failure_.empty()) return refuse("the simulation has failed (" + failure_ + "); reset first");
+    target = req.target.empty() ? (sim_->numTargets() > 0 ? std::min(primary_target_, sim_->numTargets() - 1) : -1)
+                                : sim_->findTarget(req.target);
+    if (!req.target.empty() && target < 0) return refuse("target: no target named '" + req.target + "'");
+    Plan checked;
+    const BasePose from = sim_->needle(needle).trajectory().pose(sim_->time());
+    const std::string why = checkPlan(needle, req.trajectory, from, checked);
+    if (!why.empty()) return refuse("trajectory: " + why);
+    plan.waypoints = checked.waypoints;
+    snapshot = std::make_unique<Simulation>(*sim_);
+  }
+  Prediction p;
+  try {
+    p = predictInsertion(*snapshot, plan, predict_max_steps_);
+  } catch (const InputError& e) {
+    return refuse(e.what());
+  } catch (const NumericalError& e) {
+    res.message = std::string("the predicted run failed: ") + e.what();
+    ROS_WARN("needle_sim: predict: %s", res.message.c_str());
+    return true;
+  }
+  for (const auto& s : p.samples) {
+    res.time.push_back(s.t);
+    geometry_msgs::Point tip;
+    tip.x = s.tips[needle].x();
+    tip.y = s.tips[needle].y();
+    tip.z = s.tips[needle].z();
+    res.tip_position.push_back(tip);
+    geometry_msgs::Vector3 f;
+    f.x = s.base_forces[needle].x();
+    f.y = s.base_forces[needle].y();
+    f.z = s.base_forces[needle].z();
+    res.base_force.push_back(f);
+    if (target >= 0) {
+      geometry_msgs::Point q;
+      q.x = s.targets[target].x();
+      q.y = s.targets[target].y();
+      q.z = s.targets[target].z();
+      res.target_position.push_back(q);
+      res.target_tip_distance.push_back(s.tip_distances[target]);
+    }
+  }
+  if (target >= 0) res.final_target_tip_distance = res.target_tip_distance.back();
+  res.steps = p.steps;
+  res.max_dofs = p.max_dofs;
+  res.compute_time = (ros::WallTime::now() - w0).toSec();
+  res.success = true;
+  char buf[160];
+  std::snprintf(buf, sizeof buf, "predicted %.3g s in %d steps of %.3g s (%.3f s wall)", p.samples.back().t, p.steps,
+                plan.dt, res.compute_time);
+  res.message = buf;
+  return true;
 }
 
 bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
@@ -353,14 +463,8 @@ void SimulatorRos::worker() {
     // A plan replaces what was commanded after now; its waypoints are timed from now.
     for (const auto& p : plans) {
       auto& traj = sim_->needle(p.needle).trajectory();
-      const double t0 = now;
-      traj.truncateAfter(t0);
       anchor(traj);
-      for (const auto& [dt, pose] : p.waypoints) {
-        const double t = std::max(t0 + dt, t0 + scene_.dt);
-        if (t > traj.lastTime()) traj.add(t, pose);
-        else traj.replaceLast(pose);
-      }
+      traj.replaceFrom(now, scene_.dt, p.waypoints);
     }
     stepOnce();
   }

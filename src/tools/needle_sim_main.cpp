@@ -5,6 +5,7 @@
 //   needle_sim run config/scenes/phantom_8x4x4.yaml --out /tmp/r --set tissue.grid.cells=[16,8,8]
 //   needle_sim check config/scenes/cook_membrane.yaml --set tissue.grid.cells=[32,32,1]
 //   needle_sim bench --steps 30
+//   needle_sim predict config/scenes/phantom_insertion_adaptive.yaml --duration 10 --advance 0.02 --dt 0.01
 //
 // Exit status: 0 success, 2 invalid input (scene, overrides, command line),
 // 3 numerical failure (NaN/Inf, divergence, solver failure; reported with the step).
@@ -21,6 +22,7 @@
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/simulation.hpp"
 #include "bench.hpp"
+#include "predict.hpp"
 
 using namespace needle_sim;
 
@@ -159,6 +161,24 @@ int main(int argc, char** argv) {
                   "also run with a fresh factorisation every step and report the probe difference");
   bench->add_option("--json", bench_opts.json_out, "also write the results as JSON to this file");
 
+  PredictOptions pred;
+  auto* predict = app.add_subcommand("predict", "predict a straight insertion plan from a state of a scene on a copy of "
+                                                "the simulation (as the ROS predict service), timed");
+  predict->add_option("scene", pred.scene, "scene file (YAML)")->required();
+  predict->add_option("--set", pred.sets, "override a scene value (repeatable)");
+  predict->add_option("--needle", pred.needle, "needle that follows the plan (default: the first)");
+  predict->add_option("--at", pred.at, "run the scene live to this time first [s]")->capture_default_str();
+  predict->add_option("--advance", pred.advance, "the plan: the base advances this far along its axis [m]")->capture_default_str();
+  predict->add_option("--over", pred.over, "... over this long [s] (0: the whole duration)")->capture_default_str();
+  predict->add_option("--duration", pred.duration, "simulated time of the prediction [s]")->capture_default_str();
+  predict->add_option("--dt", pred.dt, "time step of the prediction [s] (0: the scene's)")->capture_default_str();
+  predict->add_option("--sample-period", pred.sample_period, "spacing of the output samples [s]")->capture_default_str();
+  predict->add_option("--target", pred.target, "add a target at this planning position: x y z [m]")->expected(3);
+  predict->add_option("--repeat", pred.repeat, "predictions timed (median reported)")->capture_default_str();
+  predict->add_flag("--compare", pred.compare, "also predict at the scene's dt and report the largest differences");
+  predict->add_option("--csv", pred.csv, "write the last prediction's samples to this file");
+  predict->add_option("--json", pred.json_out, "also write the results as JSON to this file");
+
   try {
     auto args = withoutRosArgs(argc, argv);
     app.parse(args);
@@ -171,6 +191,7 @@ int main(int argc, char** argv) {
     if (*run) return runCommand(scene_path, out_dir, sets, quiet, rec_opts);
     if (*check) return checkCommand(scene_path, sets);
     if (*bench) return benchCommand(bench_opts);
+    if (*predict) return predictCommand(pred);
   } catch (const InputError& e) {
     std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
     return kExitInput;

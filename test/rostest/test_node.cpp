@@ -2,7 +2,8 @@
 // insertion scene, commands from needle/command_pose): commanded insertion moves the tip
 // and punctures, the wrench opposes the insertion, bad commands are rejected while the node
 // keeps running, the deformation cloud is well formed, reset restores the initial state,
-// set_target adds a tracked target (target/state, target, tf) and rejects one outside.
+// set_target adds a tracked target (target/state, target, tf) and rejects one outside,
+// predict simulates a plan on a copy without moving the live needle.
 #include <gtest/gtest.h>
 #include <ros/ros.h>
 
@@ -17,6 +18,7 @@
 #include <nav_msgs/Path.h>
 #include <geometry_msgs/PointStamped.h>
 #include <needle_sim/NeedleTrajectory.h>
+#include <needle_sim/PredictInsertion.h>
 #include <needle_sim/SetTarget.h>
 #include <needle_sim/TargetState.h>
 #include <tf2_ros/buffer.h>
@@ -280,6 +282,51 @@ TEST(NeedleSimNode, CommandedInsertionRejectsBadCommandsAndResets) {
   tf2_ros::TransformListener listener(buffer);
   EXPECT_TRUE(buffer.canTransform("tissue", "target/goal", ros::Time(0), ros::Duration(3.0)));
   EXPECT_TRUE(buffer.canTransform("tissue", "target", ros::Time(0), ros::Duration(3.0)));
+  EXPECT_EQ(L.lastStatus().state, "running");
+
+  // 9. predict: 12 mm more in 2 s (through the surface, towards the target), 2.5 s simulated
+  //    on a copy at ~predict_dt = 10 ms; the live needle stays where it is while the live
+  //    simulation goes on stepping. Bad plans are refused with the reason.
+  ASSERT_TRUE(ros::service::waitForService("predict", 5000));
+  needle_sim::PredictInsertion pr;
+  pr.request.trajectory.waypoints = {waypoint(2.0, kBaseX + 0.0025 + 0.012)};
+  pr.request.duration = 2.5;
+  const double live_tip = L.tipX();
+  const auto live_step = L.lastStatus().step;
+  ASSERT_TRUE(ros::service::call("predict", pr));
+  ASSERT_TRUE(pr.response.success) << pr.response.message;
+  const auto& r = pr.response;
+  EXPECT_EQ(r.steps, 250);
+  ASSERT_EQ(r.time.size(), 51u);  // every 50 ms, now included
+  EXPECT_EQ(r.time.front(), 0.0);
+  EXPECT_NEAR(r.time.back(), 2.5, 1e-9);
+  ASSERT_EQ(r.tip_position.size(), r.time.size());
+  ASSERT_EQ(r.base_force.size(), r.time.size());
+  ASSERT_EQ(r.target_position.size(), r.time.size());
+  ASSERT_EQ(r.target_tip_distance.size(), r.time.size());
+  EXPECT_NEAR(r.tip_position.front().x, live_tip, 1e-6);
+  EXPECT_NEAR(r.tip_position.back().x - live_tip, 0.012, 3e-4);  // followed the plan
+  EXPECT_LT(r.base_force.back().x, 0.0);                          // the tissue resists the insertion
+  const double dx = r.target_position.back().x - r.tip_position.back().x,
+               dy = r.target_position.back().y - r.tip_position.back().y,
+               dz = r.target_position.back().z - r.tip_position.back().z;
+  EXPECT_NEAR(r.final_target_tip_distance, std::sqrt(dx * dx + dy * dy + dz * dz), 1e-12);
+  EXPECT_LT(r.final_target_tip_distance, 0.01 - live_tip);  // closer than now
+  EXPECT_GT(r.target_position.back().x, 0.01);              // the target is pushed ahead
+  EXPECT_GT(r.max_dofs, 0);
+  EXPECT_GT(r.compute_time, 0.0);
+  EXPECT_NEAR(L.tipX(), live_tip, 1e-9);  // the live needle did not move ...
+  ASSERT_TRUE(waitFor([&] { return L.lastStatus().step > live_step + 10; }, 5.0));  // ... and it steps on
+  EXPECT_EQ(L.lastStatus().insertion_states[0], "approaching");
+  pr.request.trajectory.waypoints = {waypoint(0.5, kBaseX + 0.003), waypoint(1.0, std::nan(""))};
+  ASSERT_TRUE(ros::service::call("predict", pr));
+  EXPECT_FALSE(pr.response.success);
+  EXPECT_NE(pr.response.message.find("waypoint 1"), std::string::npos) << pr.response.message;
+  pr.request.trajectory.waypoints = {waypoint(1.0, kBaseX + 0.005)};
+  pr.request.needle = "no_such_needle";
+  ASSERT_TRUE(ros::service::call("predict", pr));
+  EXPECT_FALSE(pr.response.success);
+  EXPECT_NE(pr.response.message.find("no_such_needle"), std::string::npos) << pr.response.message;
   EXPECT_EQ(L.lastStatus().state, "running");
 }
 

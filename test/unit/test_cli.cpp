@@ -119,6 +119,31 @@ TEST(Cli, UsageErrorsExitWith2) {
   EXPECT_EQ(runTool("check '" + kSrc + "/config/scenes/phantom_8x4x4.yaml'").status, 0);
 }
 
+TEST(Cli, PredictReportsAndRefusesBadPlans) {
+  const std::string scene = "'" + kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml'";
+  const fs::path out = freshDir("predict");
+  fs::create_directories(out);
+  const Result ok = runTool("predict " + scene + " --duration 0.5 --advance 0.005 --dt 0.01 --target 0.01 0.01 0.01 " +
+                            "--repeat 1 --json '" + (out / "p.json").string() + "' --csv '" + (out / "p.csv").string() + "'");
+  ASSERT_EQ(ok.status, 0) << ok.err;
+  std::ifstream jf(out / "p.json");
+  std::stringstream js;
+  js << jf.rdbuf();
+  EXPECT_NE(js.str().find("\"steps\": 50"), std::string::npos) << js.str();
+  std::ifstream cf(out / "p.csv");
+  std::string header, line;
+  std::getline(cf, header);
+  EXPECT_NE(header.find("target_tip_distance"), std::string::npos) << header;
+  int rows = 0;
+  while (std::getline(cf, line)) ++rows;
+  EXPECT_EQ(rows, 6);  // now and every 0.1 s
+  for (const std::string bad : {"--at -1", "--dt -0.01", "--duration 0", "--target 1 1 1", "--needle nope", "--repeat 0"}) {
+    const Result r = runTool("predict " + scene + " " + bad);
+    EXPECT_EQ(r.status, 2) << bad << ": " << r.err;
+    EXPECT_NE(r.err.find("invalid input"), std::string::npos) << bad << ": " << r.err;
+  }
+}
+
 TEST(Cli, NeedleRunWritesTipBaseReactionAndCenterline) {
   const fs::path out = freshDir("needle");
   const Result r = runTool("run '" + kSrc + "/config/scenes/needle_free_motion.yaml' --out '" + out.string() +

@@ -32,6 +32,9 @@ struct AdaptationResult {
 class MeshAdaptation {
  public:
   MeshAdaptation(const AdaptivitySettings& settings, const HexMesh& coarse);
+  // A copy with the same forest, active mesh and hysteresis state.
+  MeshAdaptation(const MeshAdaptation& other);
+  MeshAdaptation& operator=(const MeshAdaptation&) = delete;
 
   // The current mesh (elements, levels, hanging nodes).
   const RefinableHexMesh::Active& active() const { return active_; }

@@ -7,6 +7,8 @@
 // Each law is a small subclass: the velocity each row aims at over the step (target) and
 // the projection of the multipliers onto its admissible set (project), which the projected
 // Gauss-Seidel solver applies after updating a row.
+#include <memory>
+
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/fem/embedded_point.hpp"
 
@@ -18,6 +20,8 @@ class ContactConstraint {
  public:
   virtual ~ContactConstraint() = default;
   virtual ConstraintKind kind() const = 0;
+  // A copy of the same law and state (a simulation copied for a prediction).
+  virtual std::unique_ptr<ContactConstraint> clone() const = 0;
   // Relative velocity wanted at the end of the step, per row (default: close the gap).
   virtual Vec3 target(double h) const { return -gap / h; }
   // Projects lambda onto the law's admissible set after row `row` was updated.

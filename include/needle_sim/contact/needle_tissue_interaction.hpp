@@ -50,6 +50,12 @@ class NeedleTissueInteraction {
   NeedleTissueInteraction(const InteractionSettings& settings, TissueBody& tissue, std::vector<NeedleBody*> needles,
                           const EmbeddedSurface* organ = nullptr);
 
+  // A copy of other's constraints and insertion states acting on copies of its bodies
+  // (tissue on the same mesh, needles in the same order).
+  NeedleTissueInteraction(const NeedleTissueInteraction& other, TissueBody& tissue, std::vector<NeedleBody*> needles,
+                          const EmbeddedSurface* organ = nullptr);
+  NeedleTissueInteraction(const NeedleTissueInteraction&) = delete;
+  NeedleTissueInteraction& operator=(const NeedleTissueInteraction&) = delete;
   // Between the bodies' freeMotion and commit.
   InteractionStats solve(double h);
   // After the bodies' commit: puncture, cutting, withdrawal.

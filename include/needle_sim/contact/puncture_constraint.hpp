@@ -12,6 +12,7 @@ namespace needle_sim {
 class PunctureConstraint : public ContactConstraint {
  public:
   explicit PunctureConstraint(double friction) : friction_(friction) {}
+  std::unique_ptr<ContactConstraint> clone() const override { return std::make_unique<PunctureConstraint>(*this); }
   ConstraintKind kind() const override { return ConstraintKind::Puncture; }
   // Normal: do not penetrate by the end of the step; tangents: stick.
   Vec3 target(double h) const override { return Vec3(-gap[0] / h, 0, 0); }

@@ -14,6 +14,7 @@ namespace needle_sim {
 class ShaftConstraint : public ContactConstraint {
  public:
   explicit ShaftConstraint(double friction) : friction_(friction) {}
+  std::unique_ptr<ContactConstraint> clone() const override { return std::make_unique<ShaftConstraint>(*this); }
   ConstraintKind kind() const override { return ConstraintKind::Shaft; }
   Vec3 target(double h) const override { return Vec3(0, -gap[1] / h, -gap[2] / h); }
   void project(Vec3& l, int) const override {

@@ -14,6 +14,7 @@ namespace needle_sim {
 class TipConstraint : public ContactConstraint {
  public:
   TipConstraint(double friction, double cutting_force) : friction_(friction), cutting_(cutting_force) {}
+  std::unique_ptr<ContactConstraint> clone() const override { return std::make_unique<TipConstraint>(*this); }
   ConstraintKind kind() const override { return ConstraintKind::Tip; }
   // Axial force on the needle: negative resists advance (friction + cutting), positive
   // resists retraction (friction only).

@@ -25,6 +25,10 @@ namespace needle_sim {
 class CorotationalHexModel {
  public:
   CorotationalHexModel(const HexMesh& mesh, const LinearElasticMaterial& material);
+  // A copy (rotations included) over `mesh`, a copy of other's mesh.
+  CorotationalHexModel(const CorotationalHexModel& other, const HexMesh& mesh);
+  CorotationalHexModel(const CorotationalHexModel&) = delete;
+  CorotationalHexModel& operator=(const CorotationalHexModel&) = delete;
 
   const HexMesh& mesh() const { return mesh_; }
   const LinearElasticMaterial& material() const { return material_; }

@@ -4,7 +4,9 @@
 // (direction); held constant before the first and after the last keyframe. The ROS node
 // appends commands through add() as they arrive; scene files give them up front.
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <limits>
+#include <utility>
 #include <vector>
 
 #include "needle_sim/core/types.hpp"
@@ -41,6 +43,20 @@ class BaseTrajectory {
     const BasePose at = pose(t);
     while (!keys_.empty() && keys_.back().t > t) keys_.pop_back();
     if (keys_.empty() || keys_.back().t < t) keys_.push_back({t, at});
+  }
+  // A plan from time t0 on: what was commanded after t0 is dropped, the pose at t0 held,
+  // then each waypoint (time from t0, pose) is added, none sooner than t0 + min_step (a
+  // later waypoint for the same instant replaces the earlier one).
+  void replaceFrom(double t0, double min_step, const std::vector<std::pair<double, BasePose>>& waypoints) {
+    truncateAfter(t0);
+    if (lastTime() < t0) add(t0, pose(t0));
+    for (const auto& [dt, p] : waypoints) {
+      const double t = std::max(t0 + dt, t0 + min_step);
+      if (t > lastTime())
+        add(t, p);
+      else
+        replaceLast(p);
+    }
   }
   // Forgets keyframes that no longer matter at times >= t (all but the last one before t),
   // so that a stream of commands does not grow the list without bound.

@@ -43,7 +43,12 @@
 // while subscribed; tf frames target/<name> and target (the primary) at ~display_rate.
 // For an immersed organ, tissue/surface is the organ's own deformed surface.
 // Services: reset (std_srvs/Trigger): back to the scene's initial state (and its targets);
-// set_target (needle_sim/SetTarget): add or move a target at a planning position.
+// set_target (needle_sim/SetTarget): add or move a target at a planning position;
+// predict (needle_sim/PredictInsertion): a planned base trajectory simulated from the current
+// state on a copy (the live run goes on meanwhile), on a callback thread of its own.
+//   ~predict_dt (0.01 s)              default time step of a prediction
+//   ~predict_sample_period (0.05 s)   default spacing of its samples
+//   ~predict_max_steps (100000)       longer predictions are refused
 #include <ros/ros.h>
 
 #include <atomic>
@@ -57,7 +62,9 @@
 
 #include <geometry_msgs/PoseStamped.h>
 #include <needle_sim/NeedleTrajectory.h>
+#include <needle_sim/PredictInsertion.h>
 #include <needle_sim/SetTarget.h>
+#include <ros/callback_queue.h>
 #include <std_srvs/Trigger.h>
 #include <diagnostic_updater/diagnostic_updater.h>
 #include <tf2_ros/buffer.h>
@@ -103,6 +110,10 @@ class SimulatorRos {
     std::vector<std::pair<double, BasePose>> waypoints;  // (time from start, pose)
   };
   void onTrajectory(int needle, const needle_sim::NeedleTrajectory::ConstPtr& msg);
+  // Checks a planned trajectory from the base pose `from`; fills plan.waypoints, or returns
+  // why it is refused.
+  std::string checkPlan(int needle, const needle_sim::NeedleTrajectory& msg, const BasePose& from, Plan& plan) const;
+  bool onPredict(needle_sim::PredictInsertion::Request& req, needle_sim::PredictInsertion::Response& res);
   void load();
   void onTimer(const ros::TimerEvent&);
   void onCommand(int needle, const geometry_msgs::PoseStamped::ConstPtr& msg);
@@ -166,7 +177,11 @@ class SimulatorRos {
   ros::Timer diag_timer_;
   std::unique_ptr<diagnostic_updater::Updater> updater_;
   std::vector<ros::Publisher> wrench_pubs_, path_pubs_;
-  ros::ServiceServer reset_srv_, set_target_srv_;
+  ros::ServiceServer reset_srv_, set_target_srv_, predict_srv_;
+  double predict_dt_ = 0.01, predict_sample_period_ = 0.05;
+  int predict_max_steps_ = 100000;
+  ros::CallbackQueue predict_queue_;  // predictions take their own thread
+  std::unique_ptr<ros::AsyncSpinner> predict_spinner_;
   std::thread thread_;
 };
 

@@ -27,6 +27,18 @@ class Simulation {
   // Throws InputError for scene content that only shows once the mesh exists (a probe
   // outside the tissue, a region selecting no node).
   explicit Simulation(const Scene& scene);
+  // A deep copy of the whole state (bodies and their factors, constraints and insertion
+  // states, the adaptive mesh and its hysteresis, targets, loads, time): stepping the copy
+  // leaves this one alone and gives, step for step, what this one would. A prediction
+  // (predictInsertion) runs on one.
+  Simulation(const Simulation& other);
+  Simulation& operator=(const Simulation&) = delete;
+
+  // Steps with dt from now on (a prediction may step coarser than the live run). The
+  // adaptation keeps its period in steps, counted from now (its share of the cost stays
+  // what the scene chose; contact events still adapt at once). Throws
+  // std::invalid_argument for a non-positive or non-finite dt.
+  void setTimeStep(double dt);
 
   // Advances one time step (dynamic) or one quasi-static load step (static). Throws
   // NumericalError carrying the step index on NaN/Inf, divergence or solver failure.
@@ -34,7 +46,7 @@ class Simulation {
 
   const Scene& scene() const { return scene_; }
   long stepIndex() const { return step_; }  // steps done
-  double time() const { return step_ * scene_.dt; }
+  double time() const { return time_base_ + (step_ - step_base_) * scene_.dt; }
   bool hasTissue() const { return tissue_ != nullptr; }
   const TissueBody& tissue() const { return *tissue_; }
   // The needle-tissue interaction, or nullptr when the scene has none.
@@ -115,7 +127,7 @@ class Simulation {
   std::vector<EmbeddedPoint> probes_;
   std::vector<EmbeddedPoint> targets_;
   std::vector<Vec3> target_start_;
-  std::unique_ptr<ImmersedGrid> immersed_;
+  std::shared_ptr<const ImmersedGrid> immersed_;  // never changes: copies share it
   std::unordered_map<int, double> cell_fraction_;  // forest cell -> inside fraction (not floored)
   std::unique_ptr<EmbeddedSurface> organ_;
   std::unique_ptr<BrainShift> shift_;
@@ -128,6 +140,9 @@ class Simulation {
   mutable bool estimate_ever_ = false;
   long contact_signature_ = 0;  // constraint counts and states at the last step
   long step_ = 0;
+  long step_base_ = 0;     // time() = time_base_ + (step_ - step_base_) dt, so that dt may change
+  double time_base_ = 0;
+  int every_steps_ = 1;    // adaptation period (steps since step_base_)
   StepStats last_;
   double diag_ = 1;
 };

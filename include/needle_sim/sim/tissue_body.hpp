@@ -7,6 +7,7 @@
 //   (M + h C + h^2 K) dv = h ( f(x) + f_ext - h K v - C v ),   v += dv,   x += h v.
 // Static solve: Newton on the corotational forces, K(x) dx = f(x) + f_ext, to equilibrium.
 // Prescribed DOFs keep their position and zero velocity; they are not unknowns.
+#include <algorithm>
 #include <functional>
 #include <memory>
 #include <unordered_map>
@@ -42,6 +43,27 @@ struct StepStats {
   int refined = 0, coarsened = 0;
   double estimate_ms = 0, mark_refine_ms = 0, rebuild_ms = 0;
   double adapt_ms() const { return estimate_ms + mark_refine_ms + rebuild_ms; }
+  // Adds another phase's or step's costs: times and counts summed, residuals maxed.
+  void accumulate(const StepStats& s) {
+    forces_ms += s.forces_ms;
+    assemble_ms += s.assemble_ms;
+    factor_ms += s.factor_ms;
+    solve_ms += s.solve_ms;
+    linear_iterations += s.linear_iterations;
+    factorizations += s.factorizations;
+    linear_residual = std::max(linear_residual, s.linear_residual);
+    newton_iterations += s.newton_iterations;
+    newton_residual = std::max(newton_residual, s.newton_residual);
+    constraint_points = std::max(constraint_points, s.constraint_points);
+    constraint_iterations += s.constraint_iterations;
+    constraint_residual = std::max(constraint_residual, s.constraint_residual);
+    constraint_ms += s.constraint_ms;
+    refined += s.refined;
+    coarsened += s.coarsened;
+    estimate_ms += s.estimate_ms;
+    mark_refine_ms += s.mark_refine_ms;
+    rebuild_ms += s.rebuild_ms;
+  }
   double total_ms() const { return forces_ms + assemble_ms + factor_ms + solve_ms + constraint_ms + adapt_ms(); }
 };
 
@@ -53,6 +75,11 @@ class TissueBody {
   // that is not hanging.
   TissueBody(HexMesh mesh, const TissueScene& tissue, const SolverScene& solver, const std::string& file = "",
              const std::vector<std::vector<std::pair<int, double>>>& node_hanging = {});
+
+  // A deep copy (mesh, rotations, state, loads, support, factor): stepping it gives what
+  // stepping the original would (a prediction runs on one).
+  TissueBody(const TissueBody& other);
+  TissueBody& operator=(const TissueBody&) = delete;
 
   const HexMesh& mesh() const { return *mesh_; }
   const CorotationalHexModel& model() const { return *model_; }

@@ -24,7 +24,9 @@ class CholmodSolver {
  public:
   explicit CholmodSolver(Ordering ordering = Ordering::Auto);
   ~CholmodSolver();
-  CholmodSolver(const CholmodSolver&) = delete;
+  // A copy holds its own copy of the factor (cholmod_copy_factor): solves with it give the
+  // same answers as with the original (a simulation copied for a prediction).
+  CholmodSolver(const CholmodSolver& other);
   CholmodSolver& operator=(const CholmodSolver&) = delete;
 
   // Symbolic analysis of the pattern of `upper` (values are ignored).
@@ -54,6 +56,7 @@ class CholmodSolver {
   mutable cholmod_dense_struct* x_ = nullptr;  // solve workspaces, reused
   mutable cholmod_dense_struct* y_ = nullptr;
   mutable cholmod_dense_struct* e_ = nullptr;
+  Ordering ordering_;
   int n_ = 0;
   bool factored_ = false;
   long analyses_ = 0, factorizations_ = 0;

@@ -55,6 +55,11 @@ struct LinearSolveStats {
 class SystemSolver {
  public:
   SystemSolver(const CorotationalHexModel& model, const DofMap& dofs, const LinearSolverSettings& s);
+  // A copy (factor included) for `model` and `dofs`, copies of other's; the extra stiffness
+  // is not carried over (the owner sets its own copy).
+  SystemSolver(const SystemSolver& other, const CorotationalHexModel& model, const DofMap& dofs);
+  SystemSolver(const SystemSolver&) = delete;
+  SystemSolver& operator=(const SystemSolver&) = delete;
 
   // Solves with the model's current rotations; x holds the initial guess on entry.
   // mass_free is the lumped mass over the free DOFs. Throws NumericalError(-1, ...) when

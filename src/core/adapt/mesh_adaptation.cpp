@@ -7,11 +7,15 @@
 
 namespace needle_sim {
 
-MeshAdaptation::MeshAdaptation(const AdaptivitySettings& s, const HexMesh& coarse) : settings_(s), forest_(coarse) {
-  if (s.marking == AdaptivitySettings::Marking::Bulk)
-    marking_ = std::make_unique<BulkMarking>(s.theta);
-  else
-    marking_ = std::make_unique<MaxMarking>(s.theta);
+namespace {
+std::unique_ptr<Marking> makeMarking(const AdaptivitySettings& s) {
+  if (s.marking == AdaptivitySettings::Marking::Bulk) return std::make_unique<BulkMarking>(s.theta);
+  return std::make_unique<MaxMarking>(s.theta);
+}
+}  // namespace
+
+MeshAdaptation::MeshAdaptation(const AdaptivitySettings& s, const HexMesh& coarse)
+    : settings_(s), marking_(makeMarking(s)), forest_(coarse) {
   active_ = forest_.active();
   previous_node_id_ = active_.node_id;
 }
@@ -141,6 +145,16 @@ AdaptationResult MeshAdaptation::coarsenElements(const std::vector<int>& element
   if (res.changed) activate();
   return res;
 }
+
+MeshAdaptation::MeshAdaptation(const MeshAdaptation& o)
+    : settings_(o.settings_),
+      marking_(makeMarking(o.settings_)),
+      forest_(o.forest_),
+      active_(o.active_),
+      previous_node_id_(o.previous_node_id_),
+      small_for_(o.small_for_),
+      eta_scale_(o.eta_scale_),
+      kept_(o.kept_) {}
 
 VecX MeshAdaptation::transfer(const VecX& previous) const {
   assert(previous.size() == 3 * static_cast<Eigen::Index>(previous_node_id_.size()));

@@ -1,5 +1,7 @@
 #include "needle_sim/contact/needle_tissue_interaction.hpp"
 
+#include <cassert>
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -42,6 +44,16 @@ NeedleTissueInteraction::NeedleTissueInteraction(const InteractionSettings& s, T
     : settings_(s), needles_(std::move(needles)), tracks_(needles_.size()) {
   bindTissue(tissue, organ);
   for (size_t n = 0; n < needles_.size(); ++n) tracks_[n].sheathed = sheathOf(static_cast<int>(n)) >= 0;
+}
+
+NeedleTissueInteraction::NeedleTissueInteraction(const NeedleTissueInteraction& o, TissueBody& tissue,
+                                                 std::vector<NeedleBody*> needles, const EmbeddedSurface* organ)
+    : settings_(o.settings_), needles_(std::move(needles)), tracks_(o.tracks_) {
+  assert(needles_.size() == o.needles_.size());
+  assert(tissue.mesh().numNodes() == o.tissue_->mesh().numNodes());
+  bindTissue(tissue, organ);
+  constraints_.reserve(o.constraints_.size());
+  for (const auto& c : o.constraints_) constraints_.push_back(c->clone());
 }
 
 void NeedleTissueInteraction::bindTissue(TissueBody& tissue, const EmbeddedSurface* organ) {

@@ -55,6 +55,18 @@ void extractRotation(const Mat3& A, Eigen::Quaterniond& q) {
 
 }  // namespace
 
+CorotationalHexModel::CorotationalHexModel(const CorotationalHexModel& o, const HexMesh& mesh)
+    : mesh_(mesh),
+      material_(o.material_),
+      refs_(o.refs_),
+      ref_of_(o.ref_of_),
+      quat_(o.quat_),
+      rot_(o.rot_),
+      nodal_volume_(o.nodal_volume_),
+      inverted_(o.inverted_) {
+  assert(mesh.numElements() == o.mesh_.numElements() && mesh.numNodes() == o.mesh_.numNodes());
+}
+
 CorotationalHexModel::CorotationalHexModel(const HexMesh& mesh, const LinearElasticMaterial& material)
     : mesh_(mesh), material_(material) {
   std::map<std::array<long long, 22>, int> index;

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <stdexcept>
 #include <sstream>
 
@@ -23,7 +24,7 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
   const bool immersed = scene.tissue.geometry.kind == TissueGeometry::Kind::Surface;
   try {
     if (immersed) {
-      immersed_ = std::make_unique<ImmersedGrid>(scene.tissue.geometry.surface, scene.tissue.geometry.grid);
+      immersed_ = std::make_shared<const ImmersedGrid>(scene.tissue.geometry.surface, scene.tissue.geometry.grid);
       mesh = immersed_->mesh();
       for (int e = 0; e < mesh.numElements(); ++e) cell_fraction_[e] = immersed_->fraction(e);
     } else {
@@ -32,6 +33,7 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
     if (scene.adaptivity) {
       // The tissue is numbered as the adaptive forest numbers its active mesh.
       adaptation_ = std::make_unique<MeshAdaptation>(*scene.adaptivity, mesh);
+      every_steps_ = scene.adaptivity->every_steps;
       mesh = adaptation_->active().mesh;
       if (immersed) setFractions(mesh, adaptation_->active().cell);
     }
@@ -64,6 +66,50 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
   }
   if (scene.brain_shift) preStep();
   for (int i = 0; i < numTargets(); ++i) target_start_.push_back(targetPosition(i));
+}
+
+Simulation::Simulation(const Simulation& o)
+    : scene_(o.scene_),
+      probes_(o.probes_),
+      targets_(o.targets_),
+      target_start_(o.target_start_),
+      immersed_(o.immersed_),
+      cell_fraction_(o.cell_fraction_),
+      shift_result_(o.shift_result_),
+      reference_(o.reference_),
+      estimate_(o.estimate_),
+      estimate_step_(-1),
+      estimate_ever_(o.estimate_ever_),
+      contact_signature_(o.contact_signature_),
+      step_(o.step_),
+      step_base_(o.step_base_),
+      time_base_(o.time_base_),
+      every_steps_(o.every_steps_),
+      last_(o.last_),
+      diag_(o.diag_) {
+  for (const auto& n : o.needles_) needles_.push_back(std::make_unique<NeedleBody>(*n));
+  if (!o.tissue_) return;
+  tissue_ = std::make_unique<TissueBody>(*o.tissue_);
+  if (o.organ_) organ_ = std::make_unique<EmbeddedSurface>(o.organ_->restPtr(), tissue_->mesh());
+  if (o.shift_) {
+    shift_ = std::make_unique<BrainShift>(*o.shift_);
+    shift_->rebind(organ_.get());
+  }
+  if (o.adaptation_) adaptation_ = std::make_unique<MeshAdaptation>(*o.adaptation_);
+  if (o.interaction_) {
+    std::vector<NeedleBody*> nd;
+    for (auto& n : needles_) nd.push_back(n.get());
+    interaction_ = std::make_unique<NeedleTissueInteraction>(*o.interaction_, *tissue_, nd, organ_.get());
+  }
+  // The estimator binds to the tissue body: made again on first use (estimate_step_ = -1,
+  // the same estimate results from the same state).
+}
+
+void Simulation::setTimeStep(double dt) {
+  if (!(dt > 0) || !std::isfinite(dt)) throw std::invalid_argument("time step must be positive and finite");
+  time_base_ = time();
+  step_base_ = step_;
+  scene_.dt = dt;
 }
 
 void Simulation::preStep() {
@@ -350,17 +396,7 @@ const StepStats& Simulation::step() {
   try {
     const bool dynamic = scene_.solver.mode == SolverScene::Mode::Dynamic;
     last_ = StepStats{};
-    auto add = [&](const StepStats& s) {
-      last_.forces_ms += s.forces_ms;
-      last_.assemble_ms += s.assemble_ms;
-      last_.factor_ms += s.factor_ms;
-      last_.solve_ms += s.solve_ms;
-      last_.linear_iterations += s.linear_iterations;
-      last_.factorizations += s.factorizations;
-      last_.linear_residual = std::max(last_.linear_residual, s.linear_residual);
-      last_.newton_iterations += s.newton_iterations;
-      last_.newton_residual = std::max(last_.newton_residual, s.newton_residual);
-    };
+    auto add = [&](const StepStats& s) { last_.accumulate(s); };
     if (interaction_) {
       // free motion of every body, constraint solve and corrections, commit, law updates
       const double h = scene_.dt;
@@ -376,7 +412,7 @@ const StepStats& Simulation::step() {
       interaction_->afterCommit();
     } else {
       if (tissue_) add(dynamic ? tissue_->stepDynamic(scene_.dt) : tissue_->solveStatic());
-      for (auto& nd : needles_) add(dynamic ? nd->stepDynamic(time(), scene_.dt) : nd->solveStatic(k * scene_.dt));
+      for (auto& nd : needles_) add(dynamic ? nd->stepDynamic(time(), scene_.dt) : nd->solveStatic(time() + scene_.dt));
     }
   } catch (const NumericalError& e) {
     throw NumericalError(k, std::string(e.what()) + " (step " + std::to_string(k) + ")");
@@ -392,7 +428,7 @@ const StepStats& Simulation::step() {
     if (interaction_)
       for (int n = 0; n < numNeedles(); ++n)
         signature = signature * 1000003 + interaction_->activePoints(n) * 8 + static_cast<int>(interaction_->state(n));
-    if (step_ % adaptation_->settings().every_steps == 0 || signature != contact_signature_) adaptMesh();
+    if ((step_ - step_base_) % every_steps_ == 0 || signature != contact_signature_) adaptMesh();
     contact_signature_ = signature;
   }
   return last_;

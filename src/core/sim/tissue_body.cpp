@@ -40,6 +40,25 @@ void addFaceTraction(const HexMesh& mesh, const BoundaryFace& f, const Vec3& t, 
 }
 }  // namespace
 
+TissueBody::TissueBody(const TissueBody& o)
+    : mesh_(std::make_unique<HexMesh>(*o.mesh_)),
+      settings_(o.settings_),
+      dofs_(o.dofs_),
+      rest_(o.rest_),
+      x_(o.x_),
+      v_(o.v_),
+      f_ext_(o.f_ext_),
+      mass_(o.mass_),
+      mass_free_(o.mass_free_),
+      scene_f_ext_(o.scene_f_ext_),
+      dv_free_(o.dv_free_),
+      support_(o.support_),
+      columns_(o.columns_) {
+  model_ = std::make_unique<CorotationalHexModel>(*o.model_, *mesh_);
+  solver_ = std::make_unique<SystemSolver>(*o.solver_, *model_, dofs_);
+  solver_->setExtraStiffness(supportOrNull());
+}
+
 TissueBody::TissueBody(HexMesh mesh, const TissueScene& tissue, const SolverScene& solver, const std::string& file,
                        const std::vector<std::vector<std::pair<int, double>>>& node_hanging)
     : mesh_(std::make_unique<HexMesh>(std::move(mesh))), settings_(solver) {

@@ -31,7 +31,7 @@ cholmod_sparse viewUpper(const SparseMatrix& A) {
 
 }  // namespace
 
-CholmodSolver::CholmodSolver(Ordering ordering) {
+CholmodSolver::CholmodSolver(Ordering ordering) : ordering_(ordering) {
   common_ = new cholmod_common;
   cholmod_start(common_);
   common_->print = 0;  // errors are reported through return values, not stdout
@@ -54,6 +54,17 @@ CholmodSolver::CholmodSolver(Ordering ordering) {
       common_->postorder = 1;
       break;
   }
+}
+
+CholmodSolver::CholmodSolver(const CholmodSolver& o) : CholmodSolver(o.ordering_) {
+  if (o.factor_) {
+    factor_ = cholmod_copy_factor(o.factor_, common_);
+    if (!factor_) throw std::runtime_error("CHOLMOD could not copy a factor (status " + std::to_string(common_->status) + ")");
+  }
+  n_ = o.n_;
+  factored_ = o.factored_;
+  analyses_ = o.analyses_;
+  factorizations_ = o.factorizations_;
 }
 
 CholmodSolver::~CholmodSolver() {

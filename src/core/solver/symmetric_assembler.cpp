@@ -7,8 +7,38 @@ namespace needle_sim {
 
 SymmetricAssembler::SymmetricAssembler(int n, const ElementDofs& el) : k_(el.k) {
   const int k = el.k, ne = el.numElements();
-  // Column-wise row lists of the upper triangle.
+  // Free DOFs each element touches (its local DOFs' expansions, duplicates removed), and
+  // the elements touching each free DOF.
+  std::vector<int> mark(n, -1);
+  std::vector<int> el_off(ne + 1, 0), el_dofs;
+  std::vector<std::vector<int>> dof_elements(n);
+  for (int e = 0; e < ne; ++e) {
+    for (int a = el.offset[e * k]; a < el.offset[(e + 1) * k]; ++a) {
+      const int r = el.entries[a].free;
+      if (mark[r] == e) continue;
+      mark[r] = e;
+      el_dofs.push_back(r);
+      dof_elements[r].push_back(e);
+    }
+    el_off[e + 1] = static_cast<int>(el_dofs.size());
+  }
+  // Column c of the upper triangle: the DOFs r <= c of the elements touching c, found with a
+  // marker (no duplicates to sort away), plus the diagonal (always present: the mass).
+  std::fill(mark.begin(), mark.end(), -1);
   std::vector<std::vector<int>> rows(n);
+  for (int c = 0; c < n; ++c) {
+    auto& v = rows[c];
+    mark[c] = c;
+    v.push_back(c);
+    for (int e : dof_elements[c])
+      for (int t = el_off[e]; t < el_off[e + 1]; ++t) {
+        const int r = el_dofs[t];
+        if (r < c && mark[r] != c) {
+          mark[r] = c;
+          v.push_back(r);
+        }
+      }
+  }
   auto forPairs = [&](int e, auto&& fn) {
     for (int j = 0; j < k; ++j)
       for (int i = 0; i < k; ++i)
@@ -18,13 +48,10 @@ SymmetricAssembler::SymmetricAssembler(int n, const ElementDofs& el) : k_(el.k) 
             if (ri.free <= rj.free) fn(ri.free, rj.free, j * k + i, ri.weight * rj.weight);
           }
   };
-  for (int e = 0; e < ne; ++e) forPairs(e, [&](int r, int c, int, double) { rows[c].push_back(r); });
-  for (int c = 0; c < n; ++c) rows[c].push_back(c);  // diagonal always present (mass)
   std::vector<int> outer(n + 1, 0);
   for (int c = 0; c < n; ++c) {
     auto& v = rows[c];
     std::sort(v.begin(), v.end());
-    v.erase(std::unique(v.begin(), v.end()), v.end());
     outer[c + 1] = outer[c] + static_cast<int>(v.size());
   }
   A_.resize(n, n);

@@ -17,6 +17,15 @@ SystemSolver::SystemSolver(const CorotationalHexModel& model, const DofMap& dofs
                            const LinearSolverSettings& s)
     : model_(model), dofs_(dofs), settings_(s), assembler_(dofs.numFree(), hexElementDofs(model.mesh(), dofs)), chol_(s.ordering) {}
 
+SystemSolver::SystemSolver(const SystemSolver& o, const CorotationalHexModel& model, const DofMap& dofs)
+    : model_(model),
+      dofs_(dofs),
+      settings_(o.settings_),
+      assembler_(o.assembler_),
+      chol_(o.chol_),
+      stale_(o.stale_),
+      calls_since_factor_(o.calls_since_factor_) {}
+
 void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const {
   dofs_.scatter(v, full_in_);
   full_out_.setZero(dofs_.numFull());

@@ -1,0 +1,96 @@
+#include "needle_sim/sim/prediction.hpp"
+
+#include <chrono>
+#include <cmath>
+#include <memory>
+#include <sstream>
+
+#include "needle_sim/core/error.hpp"
+
+namespace needle_sim {
+
+namespace {
+double msSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+}
+
+PredictionSample sampleOf(const Simulation& sim, double t, int needle) {
+  PredictionSample s;
+  s.t = t;
+  for (int i = 0; i < sim.numTargets(); ++i) s.targets.push_back(sim.targetPosition(i));
+  for (int n = 0; n < sim.numNeedles(); ++n) {
+    s.tips.push_back(sim.needle(n).tipPosition());
+    s.base_forces.push_back(-sim.needle(n).baseForce());
+  }
+  for (const Vec3& p : s.targets) s.tip_distances.push_back((p - s.tips[needle]).norm());
+  return s;
+}
+
+// Every check before any work: a plan that cannot run changes nothing and costs nothing.
+long checkPlan(const Simulation& live, const InsertionPlan& plan, long max_steps, double& dt, double& duration) {
+  if (plan.needle < 0 || plan.needle >= live.numNeedles())
+    throw InputError("", "predict.needle", "no needle " + std::to_string(plan.needle) + " (the scene has " +
+                                               std::to_string(live.numNeedles()) + ")");
+  double prev = -1;
+  for (size_t i = 0; i < plan.waypoints.size(); ++i) {
+    const auto& [t, p] = plan.waypoints[i];
+    const std::string key = "predict.waypoints[" + std::to_string(i) + "]";
+    if (!std::isfinite(t) || t < 0) throw InputError("", key + ".time", "must be finite and >= 0");
+    if (t <= prev) throw InputError("", key + ".time", "times must increase strictly");
+    prev = t;
+    if (!p.position.allFinite()) throw InputError("", key + ".position", "must be finite");
+    if (!p.direction.allFinite() || std::abs(p.direction.norm() - 1) > 1e-6)
+      throw InputError("", key + ".direction", "must be a finite unit vector");
+    if (!std::isfinite(p.roll)) throw InputError("", key + ".roll", "must be finite");
+  }
+  dt = plan.dt == 0 ? live.scene().dt : plan.dt;
+  if (!(dt > 0) || !std::isfinite(dt)) throw InputError("", "predict.dt", "must be positive and finite (or 0: the scene's)");
+  if (!std::isfinite(plan.duration) || plan.duration < 0)
+    throw InputError("", "predict.duration", "must be finite and >= 0");
+  if (!std::isfinite(plan.sample_period) || plan.sample_period < 0)
+    throw InputError("", "predict.sample_period", "must be finite and >= 0");
+  duration = plan.duration > 0 ? plan.duration : (plan.waypoints.empty() ? 0.0 : plan.waypoints.back().first);
+  if (!(duration > 0)) throw InputError("", "predict.duration", "nothing to simulate: no duration and no waypoint after now");
+  const double steps = std::ceil(duration / dt - 1e-9);
+  if (steps > static_cast<double>(max_steps)) {
+    std::ostringstream m;
+    m << duration << " s at dt " << dt << " s is " << steps << " steps, more than the limit of " << max_steps;
+    throw InputError("", "predict.duration", m.str());
+  }
+  return static_cast<long>(steps);
+}
+}  // namespace
+
+Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, long max_steps) {
+  double dt = 0, duration = 0;
+  const long steps = checkPlan(live, plan, max_steps, dt, duration);
+  Prediction out;
+  auto t0 = std::chrono::steady_clock::now();
+  Simulation sim(live);
+  out.copy_ms = msSince(t0);
+  t0 = std::chrono::steady_clock::now();
+  if (dt != sim.scene().dt) sim.setTimeStep(dt);
+  const double now = sim.time();
+  // The plan replaces the needle's commands from now on; the other needles hold what they
+  // were commanded (a copy of their trajectories).
+  sim.needle(plan.needle).trajectory().replaceFrom(now, dt, plan.waypoints);
+  out.samples.push_back(sampleOf(sim, 0.0, plan.needle));
+  out.max_dofs = sim.numDofs();
+  double next = plan.sample_period;
+  for (long k = 1; k <= steps; ++k) {
+    const StepStats& st = sim.step();  // NumericalError propagates: the caller reports it
+    out.totals.accumulate(st);
+    out.mesh_changes += st.mesh_changed;
+    out.max_dofs = std::max(out.max_dofs, sim.numDofs());
+    const double t = sim.time() - now;
+    if (k == steps || t >= next - 1e-9 * dt) {
+      out.samples.push_back(sampleOf(sim, t, plan.needle));
+      while (next <= t + 1e-9 * dt) next += plan.sample_period > 0 ? plan.sample_period : dt;
+    }
+  }
+  out.steps = static_cast<int>(steps);
+  out.run_ms = msSince(t0);
+  return out;
+}
+
+}  // namespace needle_sim

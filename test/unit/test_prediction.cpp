@@ -1,0 +1,214 @@
+// Copying a simulation and predicting an insertion plan on the copy (the ROS `predict`
+// service's core): a copy continues exactly as the original would, bit for bit, through
+// contact events and mesh changes; stepping it leaves the original alone; a prediction at
+// the live time step is the live run of the same plan; a coarser prediction step agrees
+// with the live step; bad plans are refused before any work.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <limits>
+#include <string>
+
+#include "needle_sim/core/blas_threads.hpp"
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/prediction.hpp"
+#include "needle_sim/sim/simulation.hpp"
+
+using namespace needle_sim;
+
+namespace {
+const std::string kScenes = std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/";
+
+// Largest difference of any state entry of two simulations (infinity if their meshes or
+// steps differ).
+double stateDifference(const Simulation& a, const Simulation& b) {
+  const double inf = std::numeric_limits<double>::infinity();
+  if (a.stepIndex() != b.stepIndex() || a.time() != b.time() || a.numDofs() != b.numDofs()) return inf;
+  double d = 0;
+  if (a.hasTissue()) {
+    d = std::max(d, (a.tissue().positions() - b.tissue().positions()).lpNorm<Eigen::Infinity>());
+    d = std::max(d, (a.tissue().velocities() - b.tissue().velocities()).lpNorm<Eigen::Infinity>());
+  }
+  for (int n = 0; n < a.numNeedles(); ++n) {
+    const auto &sa = a.needle(n).state(), &sb = b.needle(n).state();
+    for (size_t i = 0; i < sa.p.size(); ++i) {
+      d = std::max(d, (sa.p[i] - sb.p[i]).lpNorm<Eigen::Infinity>());
+      d = std::max(d, (sa.q[i].coeffs() - sb.q[i].coeffs()).lpNorm<Eigen::Infinity>());
+    }
+    d = std::max(d, (a.needle(n).velocities() - b.needle(n).velocities()).lpNorm<Eigen::Infinity>());
+    d = std::max(d, (a.needle(n).baseForce() - b.needle(n).baseForce()).lpNorm<Eigen::Infinity>());
+    if (a.interaction() && (a.interaction()->activePoints(n) != b.interaction()->activePoints(n) ||
+                            a.interaction()->state(n) != b.interaction()->state(n)))
+      return inf;
+  }
+  return d;
+}
+
+InsertionPlan straightPlan(const Simulation& sim, double advance, double over, double duration, double dt) {
+  InsertionPlan plan;
+  BasePose end = sim.needle(0).trajectory().pose(sim.time());
+  end.position += advance * end.direction;
+  plan.waypoints = {{over, end}};
+  plan.duration = duration;
+  plan.dt = dt;
+  return plan;
+}
+}  // namespace
+
+TEST(SimulationCopy, ContinuesExactlyLikeTheOriginalThroughMeshChanges) {
+  setBlasThreads(1);
+  Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml"));
+  for (int k = 0; k < 600; ++k) sim.step();  // punctured, shaft points laid, mesh refined
+  ASSERT_GT(sim.interaction()->activePoints(0), 1);
+  Simulation copy(sim);
+  EXPECT_EQ(stateDifference(sim, copy), 0.0);
+  int changes = 0;
+  for (int k = 0; k < 300; ++k) {
+    changes += sim.step().mesh_changed;
+    copy.step();
+    ASSERT_EQ(stateDifference(sim, copy), 0.0) << "step " << sim.stepIndex();
+  }
+  EXPECT_GT(changes, 0);  // the copies' adaptation ran through a mesh change
+  EXPECT_EQ(sim.elementLevels(), copy.elementLevels());
+}
+
+TEST(SimulationCopy, CannulaAndElectrodeContinueExactly) {
+  setBlasThreads(1);
+  Simulation sim(loadScene(kScenes + "phantom_cannula_electrode.yaml"));
+  for (int k = 0; k < 1200; ++k) sim.step();  // both inserted, the cannula about to withdraw
+  Simulation copy(sim);
+  while (sim.time() < sim.scene().duration - 1e-9) {
+    sim.step();
+    copy.step();
+  }
+  EXPECT_EQ(stateDifference(sim, copy), 0.0);
+  EXPECT_EQ(copy.interaction()->state(1), sim.interaction()->state(1));
+  EXPECT_GT(copy.interaction()->activePoints(1), 0);  // the electrode stayed
+}
+
+TEST(SimulationCopy, SteppingTheCopyLeavesTheOriginalAlone) {
+  Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml"));
+  for (int k = 0; k < 350; ++k) sim.step();
+  const VecX x = sim.tissue().positions();
+  const Vec3 tip = sim.needle(0).tipPosition();
+  const int points = sim.interaction()->activePoints(0), dofs = sim.numDofs();
+  const size_t keys = sim.needle(0).trajectory().size();
+  {
+    Simulation copy(sim);
+    copy.needle(0).trajectory().replaceFrom(copy.time(), copy.scene().dt, {{0.5, BasePose{tip, Vec3::UnitX(), 0}}});
+    for (int k = 0; k < 300; ++k) copy.step();
+    ASSERT_GT((copy.needle(0).tipPosition() - tip).norm(), 1e-3);
+  }
+  EXPECT_EQ(sim.stepIndex(), 350);
+  EXPECT_EQ(sim.numDofs(), dofs);
+  EXPECT_EQ((sim.tissue().positions() - x).lpNorm<Eigen::Infinity>(), 0.0);
+  EXPECT_EQ(sim.needle(0).tipPosition(), tip);
+  EXPECT_EQ(sim.interaction()->activePoints(0), points);
+  EXPECT_EQ(sim.needle(0).trajectory().size(), keys);
+  sim.step();  // and it still steps (its factors and bindings are its own)
+}
+
+TEST(SimulationCopy, TimeStepChangeKeepsTheClock) {
+  Simulation sim(loadScene(kScenes + "phantom_insertion_8x4x4.yaml"));
+  for (int k = 0; k < 10; ++k) sim.step();
+  EXPECT_NEAR(sim.time(), 0.010, 1e-15);
+  sim.setTimeStep(0.004);
+  EXPECT_NEAR(sim.time(), 0.010, 1e-15);
+  sim.step();
+  sim.step();
+  EXPECT_NEAR(sim.time(), 0.018, 1e-15);
+  EXPECT_EQ(sim.stepIndex(), 12);
+  EXPECT_THROW(sim.setTimeStep(0.0), std::invalid_argument);
+  EXPECT_THROW(sim.setTimeStep(std::nan("")), std::invalid_argument);
+}
+
+TEST(Prediction, AtTheLiveStepItIsTheLiveRunOfThePlan) {
+  setBlasThreads(1);
+  Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml"));
+  sim.setTarget("target", Vec3(0.012, 0.01, 0.0115));
+  for (int k = 0; k < 200; ++k) sim.step();
+  InsertionPlan plan = straightPlan(sim, 0.01, 0.8, 1.0, 0.0);
+  plan.sample_period = 0.1;
+  const Prediction p = predictInsertion(sim, plan);
+  EXPECT_EQ(sim.stepIndex(), 200);  // untouched
+  ASSERT_EQ(p.steps, 1000);
+  ASSERT_EQ(p.samples.size(), 11u);  // t = 0, 0.1, ..., 1.0
+  EXPECT_NEAR(p.samples.back().t, 1.0, 1e-9);
+  // The same plan, live.
+  sim.needle(0).trajectory().replaceFrom(sim.time(), sim.scene().dt, plan.waypoints);
+  for (int k = 0; k < 1000; ++k) {
+    sim.step();
+    if ((k + 1) % 100 == 0) {
+      const PredictionSample& s = p.samples[(k + 1) / 100];
+      EXPECT_NEAR(s.t, (k + 1) * 0.001, 1e-9);
+      EXPECT_EQ(s.tips[0], sim.needle(0).tipPosition()) << "t = " << s.t;
+      EXPECT_EQ(s.targets[0], sim.targetPosition(0)) << "t = " << s.t;
+      EXPECT_EQ(s.base_forces[0], -sim.needle(0).baseForce()) << "t = " << s.t;
+      EXPECT_EQ(s.tip_distances[0], (sim.targetPosition(0) - sim.needle(0).tipPosition()).norm());
+    }
+  }
+  // The plan did what it says: the tip went 10 mm further, the target was pushed along.
+  EXPECT_NEAR(p.samples.back().tips[0].x() - p.samples.front().tips[0].x(), 0.01, 2e-4);
+  EXPECT_GT((p.samples.back().targets[0] - p.samples.front().targets[0]).norm(), 1e-7);
+  EXPECT_LT(p.samples.back().base_forces[0].x(), 0);  // the tissue pushes the needle back onto its holder
+}
+
+TEST(Prediction, CoarseStepAgreesWithTheLiveStep) {
+  setBlasThreads(1);
+  Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml"));
+  sim.setTarget("target", Vec3(0.012, 0.01, 0.0115));
+  for (int k = 0; k < 200; ++k) sim.step();
+  const Prediction fine = predictInsertion(sim, straightPlan(sim, 0.012, 1.2, 1.5, 0.0));
+  const Prediction coarse = predictInsertion(sim, straightPlan(sim, 0.012, 1.2, 1.5, 0.01));
+  EXPECT_EQ(coarse.steps, 150);
+  const auto &f = fine.samples.back(), &c = coarse.samples.back();
+  const double moved = (f.targets[0] - fine.samples.front().targets[0]).norm();
+  ASSERT_GT(moved, 1e-7);
+  EXPECT_LT((c.targets[0] - f.targets[0]).norm(), 0.01 * moved);
+  EXPECT_LT((c.tips[0] - f.tips[0]).norm(), 1e-6);
+  EXPECT_LT((c.base_forces[0] - f.base_forces[0]).norm(), 0.01 * f.base_forces[0].norm());
+  std::printf("target moved %.3e m; coarse - fine: target %.3e m, tip %.3e m, force %.3e of %.3e N\n", moved,
+              (c.targets[0] - f.targets[0]).norm(), (c.tips[0] - f.tips[0]).norm(),
+              (c.base_forces[0] - f.base_forces[0]).norm(), f.base_forces[0].norm());
+}
+
+TEST(Prediction, RefusesBadPlansBeforeAnyWork) {
+  Simulation sim(loadScene(kScenes + "phantom_insertion_8x4x4.yaml"));
+  for (int k = 0; k < 5; ++k) sim.step();
+  const InsertionPlan good = straightPlan(sim, 0.01, 1.0, 0.0, 0.0);
+  auto expectKey = [&](InsertionPlan p, const std::string& key, long max_steps = 1000000) {
+    try {
+      predictInsertion(sim, p, max_steps);
+      ADD_FAILURE() << "accepted a plan with a bad " << key;
+    } catch (const InputError& e) {
+      EXPECT_EQ(e.key(), key) << e.what();
+    }
+  };
+  InsertionPlan p = good;
+  p.needle = 1;
+  expectKey(p, "predict.needle");
+  p = good;
+  p.waypoints.push_back(p.waypoints.back());
+  expectKey(p, "predict.waypoints[1].time");  // not increasing
+  p = good;
+  p.waypoints[0].first = std::nan("");
+  expectKey(p, "predict.waypoints[0].time");
+  p = good;
+  p.waypoints[0].second.position.x() = std::numeric_limits<double>::infinity();
+  expectKey(p, "predict.waypoints[0].position");
+  p = good;
+  p.waypoints[0].second.direction = Vec3(0, 0, 0);
+  expectKey(p, "predict.waypoints[0].direction");
+  p = good;
+  p.dt = -0.001;
+  expectKey(p, "predict.dt");
+  p = good;
+  p.waypoints.clear();
+  expectKey(p, "predict.duration");  // nothing to simulate
+  expectKey(good, "predict.duration", 999);  // 1000 steps over the limit
+  EXPECT_EQ(sim.stepIndex(), 5);
+  const Prediction ok = predictInsertion(sim, good);
+  EXPECT_EQ(ok.steps, 1000);
+  EXPECT_EQ(ok.samples.size(), 1001u);  // every step
+}
