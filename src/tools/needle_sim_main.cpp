@@ -5,6 +5,7 @@
 //   needle_sim run config/scenes/phantom_8x4x4.yaml --out /tmp/r --set tissue.grid.cells=[16,8,8]
 //   needle_sim check config/scenes/cook_membrane.yaml --set tissue.grid.cells=[32,32,1]
 //   needle_sim bench --steps 30
+//   needle_sim soak config/scenes/phantom_insertion_adaptive.yaml --steps 100000
 //   needle_sim predict config/scenes/phantom_insertion_adaptive.yaml --duration 10 --advance 0.02 --dt 0.01
 //
 // Exit status: 0 success, 2 invalid input (scene, overrides, command line),
@@ -23,6 +24,7 @@
 #include "needle_sim/sim/simulation.hpp"
 #include "bench.hpp"
 #include "predict.hpp"
+#include "soak.hpp"
 
 using namespace needle_sim;
 
@@ -179,6 +181,22 @@ int main(int argc, char** argv) {
   predict->add_option("--csv", pred.csv, "write the last prediction's samples to this file");
   predict->add_option("--json", pred.json_out, "also write the results as JSON to this file");
 
+  SoakOptions soak_opts;
+  auto* soak = app.add_subcommand("soak", "long run with a scripted back-and-forth insertion: RSS, step time and "
+                                          "energy per window, stops on NaN/divergence");
+  soak->add_option("scene", soak_opts.scene, "scene file (YAML)")->required();
+  soak->add_option("--set", soak_opts.sets, "override a scene value (repeatable)");
+  soak->add_option("--steps", soak_opts.steps, "steps to run")->capture_default_str();
+  soak->add_option("--window", soak_opts.window, "steps per reported window (0: one cycle)")->capture_default_str();
+  soak->add_option("--depth", soak_opts.depth, "insertion depth per cycle [m]")->capture_default_str();
+  soak->add_option("--speed", soak_opts.speed, "insertion and withdrawal speed [m/s]")->capture_default_str();
+  soak->add_option("--hold", soak_opts.hold, "hold at depth and at the start [s]")->capture_default_str();
+  soak->add_option("--max-growth-mb", soak_opts.max_growth_mb,
+                   "exit 1 if RSS grows more than this from the second window to the last full one (0: report only)")
+      ->capture_default_str();
+  soak->add_option("--csv", soak_opts.csv, "per-window rows");
+  soak->add_option("--json", soak_opts.json_out, "summary as JSON");
+
   try {
     auto args = withoutRosArgs(argc, argv);
     app.parse(args);
@@ -192,6 +210,7 @@ int main(int argc, char** argv) {
     if (*check) return checkCommand(scene_path, sets);
     if (*bench) return benchCommand(bench_opts);
     if (*predict) return predictCommand(pred);
+    if (*soak) return soakCommand(soak_opts);
   } catch (const InputError& e) {
     std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
     return kExitInput;
