@@ -12,7 +12,8 @@ if [ ! -f "$BUILD/CMakeCache.txt" ]; then
     -DCATKIN_DEVEL_PREFIX="$BUILD/devel" \
     -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
 fi
-# The unit tests only (the rostest nodes stay in the regular build).
+# The unit tests only (the rostest nodes, the stability sweep and the soak, slow under ASan,
+# stay in the regular build).
 UNIT=(test_fem test_solver test_verification test_scene test_beam test_interaction test_spr test_refinement
       test_adaptivity test_immersed test_prediction test_cli test_ros_commands)
 cmake --build "$BUILD" -j"$(nproc)" --target "${UNIT[@]}" fuzz_scene_replay fuzz_mesh_replay needle_sim_tool >&2
@@ -22,4 +23,4 @@ export ASAN_OPTIONS="detect_leaks=1:abort_on_error=0:strict_string_checks=1"
 export UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1"
 export LSAN_OPTIONS="suppressions=$ROOT/test/fuzz/lsan.supp:print_suppressions=0"
 export OPENBLAS_NUM_THREADS=1 OMP_THREAD_LIMIT=1
-ctest --output-on-failure -E "rostest" "$@"
+ctest --output-on-failure -E "rostest|stability_sweep|soak" "$@"

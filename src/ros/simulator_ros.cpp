@@ -137,6 +137,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
     predict_spinner_ = std::make_unique<ros::AsyncSpinner>(1, &predict_queue_);
     predict_spinner_->start();
   }
+  out_thread_ = std::thread(&SimulatorRos::outputLoop, this);
   thread_ = std::thread(&SimulatorRos::worker, this);
   if (!as_fast_) timer_ = nh_.createTimer(ros::Duration(scene_.dt), &SimulatorRos::onTimer, this);
   ROS_INFO("needle_sim: scene '%s' (%s), %d DOFs, dt %g s, commands from %s", scene_.name.c_str(), scene_file_.c_str(),
@@ -153,6 +154,42 @@ SimulatorRos::~SimulatorRos() {
   }
   wake_.notify_all();
   if (thread_.joinable()) thread_.join();
+  {
+    std::lock_guard<std::mutex> lk(out_mutex_);
+    out_stop_ = true;
+  }
+  out_cv_.notify_all();
+  if (out_thread_.joinable()) out_thread_.join();
+}
+
+void SimulatorRos::postJob(std::function<void()> job) {
+  bool was_empty;
+  {
+    std::lock_guard<std::mutex> lk(out_mutex_);
+    was_empty = out_queue_.empty();
+    if (out_queue_.size() >= kOutQueue) {  // the sender fell far behind: the oldest goes
+      out_queue_.pop_front();
+      ++out_dropped_;
+    }
+    out_queue_.push_back(std::move(job));
+  }
+  // The output thread takes the whole queue at once: it only waits when the queue is empty.
+  if (was_empty) out_cv_.notify_one();
+}
+
+void SimulatorRos::outputLoop() {
+  for (;;) {
+    std::deque<std::function<void()>> jobs;
+    {
+      std::unique_lock<std::mutex> lk(out_mutex_);
+      out_cv_.wait(lk, [&] { return out_stop_ || !out_queue_.empty(); });
+      if (out_queue_.empty() && out_stop_) return;
+      jobs.swap(out_queue_);
+    }
+    const auto t0 = ros::WallTime::now();
+    for (auto& j : jobs) j();
+    out_ms_total_ = out_ms_total_ + (ros::WallTime::now() - t0).toSec() * 1e3;
+  }
 }
 
 void SimulatorRos::load() {
@@ -531,19 +568,20 @@ void SimulatorRos::publish(const StepStats& s, double ms) {
       st.probes.push_back(p);
     }
   }
-  status_pub_.publish(st);
+  const std_msgs::Header header = st.header;
+  post(status_pub_, std::move(st));
   if (!failure_.empty()) return;  // never publish a state that failed
 
   for (int i = 0; i < sim_->numNeedles(); ++i) {
     const NeedleBody& nd = sim_->needle(i);
     geometry_msgs::WrenchStamped w;
-    w.header = st.header;
+    w.header = header;
     const Vec3 f = -nd.baseForce(), m = -nd.baseMoment();  // on the holder
     w.wrench.force.x = f.x(), w.wrench.force.y = f.y(), w.wrench.force.z = f.z();
     w.wrench.torque.x = m.x(), w.wrench.torque.y = m.y(), w.wrench.torque.z = m.z();
-    wrench_pubs_[i].publish(w);
+    post(wrench_pubs_[i], std::move(w));
   }
-  publishTargets(st.header);
+  publishTargets(header);
 
   const ros::WallTime wnow = ros::WallTime::now();
   if ((wnow - last_display_).toSec() >= 1.0 / display_rate_) {
@@ -569,7 +607,7 @@ void SimulatorRos::publishTargets(const std_msgs::Header& header) {
     geometry_msgs::PointStamped ps;
     ps.header = header;
     ps.point = point(sim_->targetPosition(std::min(primary_target_, nt - 1)));
-    target_pub_.publish(ps);
+    post(target_pub_, std::move(ps));
   }
   if (target_state_pub_.getNumSubscribers() == 0) return;
   const double nan = std::numeric_limits<double>::quiet_NaN();
@@ -592,7 +630,7 @@ void SimulatorRos::publishTargets(const std_msgs::Header& header) {
       if (sim_->needle(n).name() == "electrode") m.electrode_tip_distance = d;
     }
     m.displacement_error_bound = nan;
-    target_state_pub_.publish(m);
+    post(target_state_pub_, std::move(m));
   }
 }
 
@@ -611,7 +649,7 @@ void SimulatorRos::broadcastTargets(const std_msgs::Header& header) {
       tfs.push_back(t);
     }
   }
-  if (!tfs.empty()) tf_broadcaster_->sendTransform(tfs);
+  if (!tfs.empty()) postJob([this, tfs = std::move(tfs)] { tf_broadcaster_->sendTransform(tfs); });
 }
 
 void SimulatorRos::publishDisplay() {
@@ -634,16 +672,56 @@ void SimulatorRos::publishDisplay() {
         ps.pose.orientation.z = q.z();
         path.poses.push_back(ps);
       }
-      path_pubs_[i].publish(path);
+      post(path_pubs_[i], std::move(path));
     }
   }
   if (!sim_->hasTissue()) return;
-  if (cloud_pub_.getNumSubscribers() > 0) {
+  // The tissue outputs are built on the output thread from a snapshot: positions, the
+  // reference of the estimate, levels, the organ surface's vertices (a copy of the mesh only
+  // when it changed). The SPR estimate runs there too, on its own model of the mesh.
+  auto f = std::make_shared<DisplayFrame>();
+  f->header = header;
+  f->cloud = cloud_pub_.getNumSubscribers() > 0;
+  f->surface = surface_pub_.getNumSubscribers() > 0;
+  f->errors = error_pub_.getNumSubscribers() > 0;
+  if (!f->cloud && !f->surface && !f->errors) return;
+  const TissueBody& t = sim_->tissue();
+  const HexMesh& mesh = t.mesh();
+  if (!disp_mesh_ || disp_src_ != &mesh || disp_src_elements_ != mesh.numElements() || disp_src_nodes_ != mesh.numNodes()) {
+    disp_mesh_ = std::make_shared<const HexMesh>(mesh);
+    disp_src_ = &mesh;
+    disp_src_elements_ = mesh.numElements();
+    disp_src_nodes_ = mesh.numNodes();
+  }
+  f->mesh = disp_mesh_;
+  f->x = t.positions();
+  if (const VecX* r = sim_->estimateReference()) f->reference = *r;
+  if (f->errors) f->level = sim_->elementLevels();
+  if (f->surface)
+    if (const EmbeddedSurface* organ = sim_->organSurface()) {
+      f->organ_rest = organ->restPtr();
+      organ->positions(f->x, f->organ_pos);
+    }
+  postJob([this, f] { buildDisplay(*f); });
+}
+
+void SimulatorRos::buildDisplay(const DisplayFrame& f) {
+  const std_msgs::Header& header = f.header;
+  const HexMesh& mesh = *f.mesh;
+  if (out_mesh_ != f.mesh) {  // a new mesh: its model and estimator (once per mesh change)
+    out_estimator_.reset();
+    out_model_ = std::make_unique<CorotationalHexModel>(mesh, scene_.tissue.material);
+    out_estimator_ = std::make_unique<SprEstimator>(*out_model_);
+    faces_ = mesh.boundaryFaces();
+    out_mesh_ = f.mesh;
+  }
+  const VecX& x = f.x;
+  const VecX u = x - mesh.restPositions();
+  ErrorEstimate est;
+  if (f.cloud || f.errors) est = out_estimator_->estimate(x, f.reference.size() ? &f.reference : nullptr);
+  if (f.cloud) {
     // Nodal values: displacement, and the average over the node's elements of the centroid
     // von Mises stress and of the SPR indicator eta.
-    const TissueBody& t = sim_->tissue();
-    const HexMesh& mesh = t.mesh();
-    const ErrorEstimate& est = sim_->errorEstimate();
     std::vector<float> vm(mesh.numNodes(), 0.f), eta(mesh.numNodes(), 0.f);
     std::vector<int> cnt(mesh.numNodes(), 0);
     for (int e = 0; e < mesh.numElements(); ++e) {
@@ -664,8 +742,6 @@ void SimulatorRos::publishDisplay() {
                              sensor_msgs::PointField::FLOAT32);
     mod.resize(mesh.numNodes());
     sensor_msgs::PointCloud2Iterator<float> it(cloud, "x");
-    const VecX& x = t.positions();
-    const VecX u = t.displacements();
     for (int n = 0; n < mesh.numNodes(); ++n, ++it) {
       for (int d = 0; d < 3; ++d) {
         it[d] = static_cast<float>(x[3 * n + d]);
@@ -676,11 +752,6 @@ void SimulatorRos::publishDisplay() {
     }
     cloud_pub_.publish(cloud);
   }
-  const bool want_surface = surface_pub_.getNumSubscribers() > 0, want_error = error_pub_.getNumSubscribers() > 0;
-  if (!want_surface && !want_error) return;
-  const TissueBody& t = sim_->tissue();
-  const HexMesh& mesh = t.mesh();
-  const VecX& x = t.positions();
   auto colour = [](double s) {  // 0 -> blue, 0.5 -> green, 1 -> red
     std_msgs::ColorRGBA c;
     s = std::clamp(s, 0.0, 1.0);
@@ -690,27 +761,20 @@ void SimulatorRos::publishDisplay() {
     c.a = 1.f;
     return c;
   };
-  if (want_surface) {
+  if (f.surface) {
     // Triangle corners and their displacements: an immersed organ's own surface (carried by
     // the grid), else the mesh boundary (2 triangles per face).
     std::vector<Vec3> corner;
     std::vector<double> du;
-    if (const EmbeddedSurface* organ = sim_->organSurface()) {
-      const TriangleMesh& rest = organ->rest();
-      std::vector<Vec3> p;
-      organ->positions(x, p);
+    if (f.organ_rest) {
+      const TriangleMesh& rest = *f.organ_rest;
+      const std::vector<Vec3>& p = f.organ_pos;
       for (int tr = 0; tr < rest.numTriangles(); ++tr)
         for (int v : rest.triangle(tr)) {
           corner.push_back(p[v]);
           du.push_back((p[v] - rest.vertex(v)).norm());
         }
     } else {
-      if (faces_mesh_ != &mesh || faces_elements_ != mesh.numElements()) {
-        faces_ = mesh.boundaryFaces();
-        faces_mesh_ = &mesh;
-        faces_elements_ = mesh.numElements();
-      }
-      const VecX u = t.displacements();
       for (const auto& f : faces_)
         for (int k : {0, 1, 2, 0, 2, 3}) {
           const int n = f.nodes[k];
@@ -736,9 +800,8 @@ void SimulatorRos::publishDisplay() {
     }
     surface_pub_.publish(m);
   }
-  if (want_error) {
-    const ErrorEstimate& est = sim_->errorEstimate();
-    const std::vector<int> level = sim_->elementLevels();
+  if (f.errors) {
+    const std::vector<int>& level = f.level;
     visualization_msgs::MarkerArray arr;
     visualization_msgs::Marker clear;
     clear.header = header;
@@ -796,6 +859,8 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   stat.add("rejected_commands", rej);
   stat.add("clamped_commands", cl);
   stat.add("tf_failures", static_cast<uint64_t>(tf_failures_));
+  stat.add("output_thread_ms_total", out_ms_total_.load());
+  stat.add("output_messages_dropped", out_dropped_.load());
 }
 
 }  // namespace needle_sim

@@ -2,6 +2,7 @@
 // (/use_sim_time): a thread publishes /clock in 1 ms steps of simulated time, paced at half
 // the wall rate so the node keeps up on two cores.
 #include <gtest/gtest.h>
+#include <diagnostic_msgs/DiagnosticArray.h>
 #include <ros/callback_queue.h>
 #include <ros/ros.h>
 #include <rosgraph_msgs/Clock.h>
@@ -13,6 +14,7 @@
 #include <limits>
 #include <mutex>
 #include <thread>
+#include <vector>
 
 #include <geometry_msgs/PoseStamped.h>
 #include <geometry_msgs/WrenchStamped.h>
@@ -72,6 +74,14 @@ TEST(NeedleSimFaults, BurstsNonFiniteCommandsStallsAndClockJumps) {
     std::lock_guard<std::mutex> lk(m);
     return status;
   };
+  // Diagnostics: the node's "simulation" status, every one seen after the bad commands.
+  std::vector<std::pair<int, std::string>> diags;
+  bool after_bad = false;
+  auto s4 = nh.subscribe<diagnostic_msgs::DiagnosticArray>("/diagnostics", 100, [&](const diagnostic_msgs::DiagnosticArray::ConstPtr& d) {
+    std::lock_guard<std::mutex> lk(m);
+    for (const auto& st : d->status)
+      if (after_bad && st.name.find("simulation") != std::string::npos) diags.emplace_back(st.level, st.message);
+  });
   ros::Publisher cmd = nh.advertise<geometry_msgs::PoseStamped>("needle/command_pose", 20000);
   ros::AsyncSpinner spinner(2);
   spinner.start();
@@ -96,6 +106,18 @@ TEST(NeedleSimFaults, BurstsNonFiniteCommandsStallsAndClockJumps) {
   ++sent;
   ASSERT_TRUE(waitFor([&] { return last().rejected_commands == r0 + sent; }, 10.0)) << last().rejected_commands - r0;
   EXPECT_EQ(last().state, "running");
+  {
+    std::lock_guard<std::mutex> lk(m);
+    after_bad = true;
+  }
+  // Reported through diagnostics: a WARN naming the rejected commands (the updater runs
+  // once per second of the simulated clock, which runs at half the wall clock here).
+  ASSERT_TRUE(waitFor([&] {
+    std::lock_guard<std::mutex> lk(m);
+    for (const auto& [level, msg] : diags)
+      if (level == diagnostic_msgs::DiagnosticStatus::WARN && msg.find("rejected") != std::string::npos) return true;
+    return false;
+  }, 15.0)) << "no WARN diagnostic after rejected commands";
 
   // 2. A burst of 10,000 commands (toward the tissue, 1 mm in all) as fast as they can go:
   //    dropped by the queue or clamped, never a failure; the steps go on.
@@ -137,6 +159,7 @@ TEST(NeedleSimFaults, BurstsNonFiniteCommandsStallsAndClockJumps) {
 
   std::lock_guard<std::mutex> lk(m);
   EXPECT_FALSE(non_finite) << "a non-finite value was published";
+  for (const auto& [level, msg] : diags) EXPECT_NE(level, diagnostic_msgs::DiagnosticStatus::ERROR) << msg;
 }
 
 int main(int argc, char** argv) {

@@ -3,7 +3,8 @@
 // (needle_sim_node) and the nodelet (needle_sim/SimulatorNodelet). No physics here: it
 // loads a scene, turns validated commands into keyframes of the needles' base trajectories,
 // steps the core Simulation on a worker thread paced by a ros::Timer (which follows /clock
-// under /use_sim_time), and publishes what the core computes.
+// under /use_sim_time), builds messages from what the core computes, and hands them to an
+// output thread that sends them (so serialisation and sockets never delay a step).
 //
 // Parameters (private):
 //   ~scene (string, required)      scene YAML file
@@ -50,10 +51,12 @@
 //   ~predict_sample_period (0.05 s)   default spacing of its samples
 //   ~predict_max_steps (100000)       longer predictions are refused
 #include <ros/ros.h>
+#include <boost/make_shared.hpp>
 
 #include <atomic>
 #include <condition_variable>
 #include <deque>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -126,9 +129,30 @@ class SimulatorRos {
   void publishTargets(const std_msgs::Header& header);   // light: every step, while subscribed
   void broadcastTargets(const std_msgs::Header& header); // tf, at ~display_rate
   void worker();
+  // Messages are built on the worker thread (from the simulation's state, under its lock)
+  // and sent by the output thread: serialisation and socket writes, the tf broadcasts, never
+  // delay a step. In order; if the sender falls kOutQueue jobs behind, the oldest are dropped
+  // (counted in diagnostics).
+  template <class M>
+  void post(ros::Publisher& pub, M msg) {
+    auto m = boost::make_shared<M>(std::move(msg));
+    postJob([&pub, m] { pub.publish(m); });
+  }
+  void postJob(std::function<void()> job);
+  void outputLoop();
   void stepOnce();  // with sim_mutex_ held
   void publish(const StepStats& s, double ms);
-  void publishDisplay();  // cloud, surface, error markers (with sim_mutex_ held)
+  void publishDisplay();  // path; snapshot for cloud, surface, error markers (with sim_mutex_ held)
+  struct DisplayFrame {
+    std_msgs::Header header;
+    bool cloud = false, surface = false, errors = false;
+    std::shared_ptr<const HexMesh> mesh;
+    VecX x, reference;  // reference: the estimate's (empty: none)
+    std::vector<int> level;
+    std::shared_ptr<const TriangleMesh> organ_rest;  // immersed organ, and its vertices now
+    std::vector<Vec3> organ_pos;
+  };
+  void buildDisplay(const DisplayFrame& f);  // on the output thread
   void diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat);
 
   ros::NodeHandle nh_, pnh_;
@@ -137,9 +161,14 @@ class SimulatorRos {
   double max_speed_ = 0.05, command_timeout_ = 0.5, workspace_margin_ = 0.2, display_rate_ = 30;
   double command_latency_ = 0.005;
   ros::WallTime last_display_;
-  // Boundary faces of the current tissue mesh (recomputed when the mesh changes).
-  const HexMesh* faces_mesh_ = nullptr;
-  int faces_elements_ = -1;
+  // Display snapshots: the mesh copied once per change (worker thread) ...
+  std::shared_ptr<const HexMesh> disp_mesh_;
+  const HexMesh* disp_src_ = nullptr;
+  int disp_src_elements_ = -1, disp_src_nodes_ = -1;
+  // ... and, on the output thread, its model, estimator and boundary faces.
+  std::shared_ptr<const HexMesh> out_mesh_;
+  std::unique_ptr<CorotationalHexModel> out_model_;
+  std::unique_ptr<SprEstimator> out_estimator_;
   std::vector<BoundaryFace> faces_;
   uint64_t diag_rejected_ = 0, diag_clamped_ = 0, diag_overruns_ = 0;
   bool as_fast_ = false;
@@ -178,6 +207,14 @@ class SimulatorRos {
   std::unique_ptr<diagnostic_updater::Updater> updater_;
   std::vector<ros::Publisher> wrench_pubs_, path_pubs_;
   ros::ServiceServer reset_srv_, set_target_srv_, predict_srv_;
+  std::mutex out_mutex_;
+  std::condition_variable out_cv_;
+  std::deque<std::function<void()>> out_queue_;
+  bool out_stop_ = false;
+  static constexpr size_t kOutQueue = 20000;
+  std::atomic<uint64_t> out_dropped_{0};
+  std::atomic<double> out_ms_total_{0.0};
+  std::thread out_thread_;
   double predict_dt_ = 0.01, predict_sample_period_ = 0.05;
   int predict_max_steps_ = 100000;
   ros::CallbackQueue predict_queue_;  // predictions take their own thread

@@ -68,6 +68,8 @@ class Simulation {
   // SPR estimate of the current state; computed on first use after each step (adaptive
   // runs compute it anyway and share it).
   const ErrorEstimate& errorEstimate() const;
+  // The state the estimate measures the change from (the shifted brain), or nullptr.
+  const VecX* estimateReference() const { return reference_.size() ? &reference_ : nullptr; }
   // The last estimate computed (by the adaptation or errorEstimate()), or nullptr.
   const ErrorEstimate* lastEstimate() const { return estimate_ever_ ? &estimate_ : nullptr; }
   // Refines the given tissue elements now (tests, scripted refinement), carrying the state
