@@ -269,22 +269,29 @@ TEST(BrainShift, AdaptivePreStepRefinesThenScalesOnTheFinalMesh) {
   EXPECT_EQ(copy.targetPosition(0), sim.targetPosition(0));
 }
 
-// Support springs (the skull holding the shifted brain): force anchor - K_s x enters the
-// static and the dynamic solves alike. A block clamped at x = 0 and pulled in x on its free
-// face, whose nodes also hang on stiff x-springs anchored at rest: each free-face node moves
-// by about its load over the spring, and damped dynamic steps settle on the static answer.
-TEST(BrainShift, SupportSpringsEnterStaticAndDynamicSolves) {
-  const Scene sc = parseScene(R"(
-name: support_test
+namespace {
+// A unit block on a 2 x 2 x 2 grid clamped on its face x = 0.
+Scene clampedBlock(const std::string& solver) {
+  return parseScene(R"(
+name: clamped_block
 time: {dt: 0.01, duration: 1.0}
-solver: {mode: dynamic, rayleigh: {mass: 50.0, stiffness: 0.0}}
+)" + solver + R"(
 tissue:
   geometry: {box: {min: [0, 0, 0], max: [1, 1, 1]}}
   grid: {cells: [2, 2, 2]}
   material: {young: 1000.0, poisson: 0.3, density: 1.0}
   dirichlet:
     - region: {box: {min: [-0.1, -0.1, -0.1], max: [0.1, 1.1, 1.1]}}
-)", kSrc + "/config/scenes/support_test.yaml");
+)", kSrc + "/config/scenes/clamped_block.yaml");
+}
+}  // namespace
+
+// Support springs (the skull holding the shifted brain): force anchor - K_s x enters the
+// static and the dynamic solves alike. A block clamped at x = 0 and pulled in x on its free
+// face, whose nodes also hang on stiff x-springs anchored at rest: each free-face node moves
+// by about its load over the spring, and damped dynamic steps settle on the static answer.
+TEST(BrainShift, SupportSpringsEnterStaticAndDynamicSolves) {
+  const Scene sc = clampedBlock("solver: {mode: dynamic, rayleigh: {mass: 50.0, stiffness: 0.0}}");
   const HexMesh mesh = HexMesh::box(Vec3::Zero(), Vec3::Ones(), Vec3i(2, 2, 2));
   const double k = 1e7, F = 1.0;  // spring 1e4 x the block's stiffness
   ElementBlocks S;
@@ -324,4 +331,69 @@ tissue:
   dyn.addExternalForce(f + anchor);
   for (int s = 0; s < 400; ++s) dyn.stepDynamic(0.01);
   EXPECT_LT((dyn.positions() - stat.positions()).lpNorm<Eigen::Infinity>(), 1e-6 * F / face.size() / k);
+}
+
+// Load control (the bordered Newton behind target_shift): a clamped block pulled on its free
+// face by s x (unit load), s unknown, until a corner has moved by three times what the unit
+// load moves it. In the small-strain range the answer is s = 3 (to the model's O(u^2)
+// nonlinearity), and the state is the equilibrium of the plain solve at that scale.
+TEST(LoadControl, ScalesTheLoadToAPrescribedDisplacement) {
+  const Scene sc = clampedBlock("solver: {mode: static}");
+  const HexMesh mesh = HexMesh::box(Vec3::Zero(), Vec3::Ones(), Vec3i(2, 2, 2));
+  VecX unit = VecX::Zero(mesh.numDofs());
+  int corner = -1, clamped = -1;
+  for (int i = 0; i < mesh.numNodes(); ++i) {
+    if (mesh.node(i).x() > 0.99) unit[3 * i] = 1e-3;  // strains ~1e-6
+    if ((mesh.node(i) - Vec3::Ones()).norm() < 1e-12) corner = i;
+    if (mesh.node(i).norm() < 1e-12) clamped = i;
+  }
+  ASSERT_GE(corner, 0);
+  ASSERT_GE(clamped, 0);
+  TissueBody once(mesh, sc.tissue, sc.solver);
+  once.addExternalForce(unit);
+  once.solveStatic(TissueBody::ExtraForce{}, 1e-10, 50);
+  const double u1 = node3(once.displacements(), corner).norm();
+  ASSERT_GT(u1, 1e-8);
+
+  // From the unit-load equilibrium, |u_corner| = 3 u1 by load control.
+  auto corner_motion = [&](int node, double want) {
+    return [&, node, want](const VecX& x, VecX& g) {
+      const Vec3 d = node3(x, node) - mesh.node(node);
+      if (d.norm() == 0) return -want;  // (the clamped node: no gradient)
+      node3(g, node) = d.normalized();
+      return d.norm() - want;
+    };
+  };
+  TissueBody::LoadControl lc;
+  lc.unit = &unit;
+  lc.scale = 1.0;
+  lc.tolerance = 1e-8 * u1;
+  lc.constraint = corner_motion(corner, 3 * u1);
+  TissueBody ctl(mesh, sc.tissue, sc.solver);
+  ctl.addExternalForce(unit);
+  ctl.solveStatic(TissueBody::ExtraForce{}, 1e-10, 50);
+  ctl.solveStatic(TissueBody::ExtraForce{}, 1e-10, 50, &lc);
+  EXPECT_NEAR(lc.scale, 3.0, 1e-4);
+  EXPECT_NEAR(node3(ctl.displacements(), corner).norm(), 3 * u1, 1e-8 * u1);
+  TissueBody plain(mesh, sc.tissue, sc.solver);
+  plain.addExternalForce(lc.scale * unit);
+  plain.solveStatic(TissueBody::ExtraForce{}, 1e-10, 50);
+  EXPECT_LT((plain.positions() - ctl.positions()).lpNorm<Eigen::Infinity>(), 1e-7 * u1);
+
+  // A displacement the load cannot move (a clamped node): a NumericalError naming it.
+  TissueBody stuck(mesh, sc.tissue, sc.solver);
+  stuck.addExternalForce(unit);
+  stuck.solveStatic(TissueBody::ExtraForce{}, 1e-10, 50);
+  TissueBody::LoadControl bad = lc;
+  bad.scale = 1.0;
+  bad.constraint = [&](const VecX& x, VecX& g) {
+    node3(g, clamped) = Vec3::UnitX();
+    return node3(x, clamped).x() - 0.5;
+  };
+  try {
+    stuck.solveStatic(TissueBody::ExtraForce{}, 1e-10, 50, &bad);
+    ADD_FAILURE() << "no error";
+  } catch (const NumericalError& e) {
+    EXPECT_NE(std::string(e.what()).find("does not grow with the load"), std::string::npos) << e.what();
+  }
 }

@@ -23,8 +23,9 @@
 // stops changing (Simulation); rebind() moves the contact to the new mesh with its
 // multipliers, and apply() starts from the previous load scale.
 //
-// With `target_shift`, the load is scaled by secant iterations until the target moves by
-// that distance (the paper reproduces a measured shift of about 6.5 mm).
+// With `target_shift`, the load scale is solved for with the displacements under
+// displacement control (TissueBody::LoadControl) until the target moves by that distance
+// (the paper reproduces a measured shift of about 6.5 mm).
 #include <vector>
 
 #include "needle_sim/geometry/embedded_surface.hpp"
@@ -39,7 +40,7 @@ struct BrainShiftResult {
   Vec3 target_displacement = Vec3::Zero();
   std::string target;               // "" without a target
   double max_displacement = 0;      // largest nodal displacement [m]
-  int load_solves = 0;              // static solves (load steps x secant iterations)
+  int load_solves = 0;              // static solves (load steps, then one controlled solve)
   int newton_iterations = 0;
   int multiplier_updates = 0;
   int factorizations = 0;

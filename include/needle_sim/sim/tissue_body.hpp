@@ -113,11 +113,21 @@ class TissueBody {
   // An extra conservative force field for a static solve: adds its force at x to f (3n)
   // and its stiffness (-df/dx) as element blocks (replacing what K holds).
   using ExtraForce = std::function<void(const VecX& x, VecX& f, ElementBlocks& K)>;
-  StepStats solveStatic(const ExtraForce& extra, double tolerance, int max_iterations);
-  // Solves K_t y = rhs (3n, free DOFs) with the tangent at the current state (the extra
-  // terms' blocks included): the sensitivity of an equilibrium to a load, e.g. d x / d s
-  // for a load s * rhs. Prescribed entries of y are zero.
-  VecX tangentSolve(const ExtraForce& extra, const VecX& rhs, StepStats& stats);
+  // Displacement control: a load s * unit whose scale s is unknown besides x, fixed by one
+  // scalar constraint c(x) = 0 (e.g. "the target has moved by 6.5 mm"). Each Newton step
+  // solves the bordered system  K dx - ds unit = r,  grad c . dx = -c  with two solves by
+  // one matrix, dx = K^-1 r + ds K^-1 unit, so the scale and the equilibrium converge
+  // together instead of an equilibrium per trial scale.
+  struct LoadControl {
+    const VecX* unit = nullptr;                                    // load per unit scale (3n)
+    std::function<double(const VecX& x, VecX& grad)> constraint;  // c(x) [m] and dc/dx (3n)
+    double tolerance = 0;                                          // |c| to reach [m]
+    double scale = 0;           // in: the scale of `unit` inside the external load; out: reached
+    double max_scale = 1e3;     // beyond it the constraint is out of reach (NumericalError)
+    double max_growth = 4;      // one step changes the scale by at most this factor (either way)
+  };
+  StepStats solveStatic(const ExtraForce& extra, double tolerance, int max_iterations,
+                        LoadControl* control = nullptr);
 
   double kineticEnergy() const;
   double elasticEnergy() const { return model_->elasticEnergy(x_); }

@@ -63,8 +63,9 @@ class SystemSolver {
 
   // Solves with the model's current rotations; x holds the initial guess on entry.
   // mass_free is the lumped mass over the free DOFs. Throws NumericalError(-1, ...) when
-  // the matrix is not positive definite or the solve fails.
-  LinearSolveStats solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x);
+  // the matrix is not positive definite or the solve fails. tolerance > 0 replaces the
+  // settings' CG tolerance for this call (an inexact Newton step); ignored by the direct method.
+  LinearSolveStats solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x, double tolerance = 0);
   // out = A v over the free DOFs, matrix-free.
   void apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const;
   // Adds c_k * blocks to A until cleared (nullptr); the caller keeps them alive and

@@ -158,10 +158,10 @@ BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target
   const double tol = rough ? std::max(scene_.tolerance, kRoughTolerance) : scene_.tolerance;
   // Newton solves with multiplier updates until the penetration is within tolerance.
   // loose: to the rough tolerances (the steps towards target_shift's scale).
-  auto solveContact = [&](bool loose = false) {
+  auto solveContact = [&](bool loose, TissueBody::LoadControl* control) {
     loose = loose || rough;
     for (int pass = 0; pass < (loose ? 2 : 20); ++pass) {
-      const StepStats st = body.solveStatic(extra, loose ? std::max(tol, kRoughTolerance) : tol, 50);
+      const StepStats st = body.solveStatic(extra, loose ? std::max(tol, kRoughTolerance) : tol, 50, control);
       res.newton_iterations += st.newton_iterations;
       res.factorizations += st.factorizations;
       res.factor_ms += st.factor_ms + st.assemble_ms;
@@ -187,52 +187,45 @@ BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target
 
   try {
     const bool at_rest = (body.positions() - body.mesh().restPositions()).squaredNorm() == 0;
-    const int steps = at_rest ? scene_.load_steps : 1;
+    const bool control = calibrate && scene_.target_shift && target;
+    // From rest, the load in steps (the controlled solve needs the target to have moved to
+    // know its direction); from an earlier shift (a refined mesh), the controlled solve at once.
+    const int steps = at_rest ? scene_.load_steps : control ? 0 : 1;
+    if (steps == 0) setScale(start_scale);
     for (int k = 1; k <= steps; ++k) {
       setScale(start_scale * k / steps);
-      solveContact(calibrate && scene_.target_shift && target);  // rough when the scale is solved for next
+      solveContact(control, nullptr);  // rough when the scale is solved for next
     }
     res.load_scale = applied;
-    if (calibrate && scene_.target_shift && target) {
-      // Newton on the load scale s for |d(s)| = target_shift, with the exact derivative at
-      // each equilibrium (for its contact set): dd/ds = d^ . (K_t^-1 f_unit at the target),
-      // one extra solve with the tangent. Converges in a few equilibria where a secant on s
-      // crept up on the target as the skull stiffened the response.
-      // The steps solve roughly; the scale found is then solved to the tolerance and checked.
+    if (control) {
+      // target_shift: displacement control, |d(x)| = want with the load scale unknown (the
+      // bordered Newton of TissueBody::solveStatic), to 1 % on a rough pass, 0.1 % else.
       const double want = *scene_.target_shift;
       const double accuracy = rough ? 1e-2 : 1e-3;
-      const auto& el = body.mesh().element(target->element);
-      bool final_solve = rough;
-      for (int it = 0;; ++it) {
-        const Vec3 d = targetMotion();
-        if (std::abs(d.norm() - want) <= 0.5 * accuracy * want) {
-          if (final_solve) break;
-          solveContact();
-          final_solve = true;
-          if (std::abs(targetMotion().norm() - want) <= accuracy * want) break;
-          continue;
-        }
-        if (it == 12)
-          throw NumericalError(-1, "brain shift: could not reach target_shift " + std::to_string(want) + " m (got " +
-                                       std::to_string(d.norm()) + " m)");
-        StepStats st;
-        const VecX w = body.tangentSolve(extra, unit, st);
-        res.factorizations += st.factorizations;
-        res.factor_ms += st.factor_ms + st.assemble_ms;
-        res.solve_ms += st.solve_ms;
-        Vec3 dw = Vec3::Zero();
-        for (int a = 0; a < 8; ++a) dw += target->weights[a] * node3(w, el[a]);
-        const double slope = d.norm() > 0 ? d.normalized().dot(dw) : dw.norm();
-        if (!(slope > 0)) throw NumericalError(-1, "brain shift: the target does not move with the load");
-        const double next = std::clamp(applied + (want - d.norm()) / slope, 0.25 * applied, 4 * applied);
-        if (next > 1e3)
-          throw NumericalError(-1, "brain shift: target_shift " + std::to_string(want) +
-                                       " m is out of reach (the skull and clamps hold the target)");
-        setScale(next);
-        // Rough steps until the first precise solve; precise ones after it (a rough solve's
-        // error could exceed the accuracy asked for).
-        solveContact(!final_solve || rough);
+      const HexMesh& mesh = body.mesh();
+      const auto& el = mesh.element(target->element);
+      TissueBody::LoadControl lc;
+      lc.unit = &unit;
+      lc.scale = applied;
+      lc.tolerance = 0.25 * accuracy * want;
+      lc.constraint = [&](const VecX& x, VecX& g) {
+        const Vec3 d = target->interpolate(mesh, x) - target->rest;
+        const double n = d.norm();
+        if (!(n > 0)) throw NumericalError(-1, "brain shift: the target does not move with the load");
+        for (int a = 0; a < 8; ++a) node3(g, el[a]) += target->weights[a] * d / n;
+        return n - want;
+      };
+      try {
+        solveContact(rough, &lc);
+      } catch (const NumericalError& e) {
+        throw NumericalError(-1, "brain shift: could not reach target_shift " + std::to_string(want) + " m (" +
+                                     e.what() + ")");
       }
+      applied = lc.scale;
+      const double got = targetMotion().norm();
+      if (std::abs(got - want) > accuracy * want)
+        throw NumericalError(-1, "brain shift: could not reach target_shift " + std::to_string(want) + " m (got " +
+                                     std::to_string(got) + " m)");
       res.load_scale = applied;
     }
   } catch (const NumericalError& e) {

@@ -1,6 +1,7 @@
 #include "needle_sim/sim/tissue_body.hpp"
 
 #include <algorithm>
+#include <cassert>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -232,36 +233,20 @@ StepStats TissueBody::solveStatic() {
   return solveStatic(ExtraForce{}, settings_.static_tolerance, settings_.static_max_iterations);
 }
 
-VecX TissueBody::tangentSolve(const ExtraForce& extra, const VecX& rhs, StepStats& st) {
-  ElementBlocks blocks;
-  model_->updateRotations(x_);
-  if (extra) {
-    VecX f = VecX::Zero(x_.size());
-    extra(x_, f, blocks);
-    blocks.element.insert(blocks.element.end(), support_.element.begin(), support_.element.end());
-    blocks.K.insert(blocks.K.end(), support_.K.begin(), support_.K.end());
-    solver_->setExtraStiffness(&blocks);
-  }
-  Detach detach{*solver_, supportOrNull()};
-  solver_->invalidate();
-  VecX b, y, out;
-  dofs_.gather(rhs, b);
-  y.setZero(b.size());
-  accumulate(st, solver_->solve(mass_free_, 0.0, 1.0, b, y));
-  dofs_.scatter(y, out);
-  return out;
-}
+// Full Newton steps under load control before falling back to backtracking (a safeguard
+// against an active set that cycles).
+constexpr int kFullControlledSteps = 20;
 
-StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_iterations) {
+StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_iterations, LoadControl* control) {
   StepStats st;
-  VecX r_full, r, dx_free, dx;
+  VecX r_full, r, dx_free, dx, unit_free, w_free, w, grad_full, grad;
   ElementBlocks blocks;
-  double ref = 0;
-  {
+  auto loadNorm = [&]() {
     VecX fe;
     dofs_.gather(f_ext_, fe);
-    ref = fe.norm();
-  }
+    return fe.norm();
+  };
+  double ref = loadNorm();
   Detach detach{*solver_, supportOrNull()};  // the solver must not keep `blocks` past this call
   // Residual (free DOFs) at the current x_, with the extra terms' blocks.
   auto residual = [&](VecX& out) {
@@ -278,44 +263,101 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     dofs_.gather(r_full, out);
     return out.norm();
   };
+  // Load control: the constraint at x_, its gradient over the free DOFs, and the load scale.
+  double c = 0;
+  auto constraint = [&]() {
+    grad_full.setZero(x_.size());
+    c = control->constraint(x_, grad_full);
+    dofs_.gather(grad_full, grad);
+    if (!std::isfinite(c)) throw NumericalError(-1, "static solve: load-control constraint is NaN/Inf");
+  };
+  auto setScale = [&](double s) {
+    f_ext_ += (s - control->scale) * *control->unit;
+    control->scale = s;
+  };
+  if (control) {
+    assert(control->unit && control->constraint && control->scale > 0);
+    dofs_.gather(*control->unit, unit_free);
+    w_free.setZero(unit_free.size());
+  }
   VecX x_trial, r_trial;
-  double rn = 0;
+  double rn = 0, gw = 1;
   for (int it = 0; it <= max_iterations; ++it) {
     auto t0 = std::chrono::steady_clock::now();
-    if (it == 0) rn = residual(r);
+    if (it == 0) {
+      rn = residual(r);
+      if (control) constraint();
+    }
     if (extra) solver_->setExtraStiffness(&blocks);
+    if (control) ref = std::max(ref, loadNorm());  // the load grows with its scale
     if (it == 0) ref = std::max(ref, rn);
     st.forces_ms += msSince(t0);
     st.newton_residual = ref > 0 ? rn / ref : 0.0;
     if (!std::isfinite(rn)) throw NumericalError(-1, "static solve: residual is NaN/Inf");
     // Converged when the residual is small, or when the last Newton correction is below the
     // requested accuracy of the displacement (on ill-conditioned problems such as slender
-    // cantilevers the residual bottoms out near cond(K) * eps before the solution does).
+    // cantilevers the residual bottoms out near cond(K) * eps before the solution does);
+    // under load control also when the constraint holds.
     const double un = (x_ - rest_).norm();
-    if (rn <= tol * ref || ref == 0 || (it > 0 && dx.norm() <= tol * un)) {
+    const bool balanced = rn <= tol * ref || ref == 0 || (it > 0 && dx.norm() <= tol * un);
+    if (balanced && (!control || std::abs(c) <= control->tolerance)) {
       st.newton_iterations = it;
       v_.setZero();
       return st;
     }
     if (it == max_iterations) break;
     dx_free.setZero(r.size());
-    const auto l = solver_->solve(mass_free_, 0.0, 1.0, r, dx_free);
-    accumulate(st, l);
+    // Inexact Newton: far from equilibrium the step needs few digits (the forcing term
+    // follows the residual, which keeps the convergence superlinear), and the last step
+    // only as many as the tolerance asks for. Never looser than 1e-1, never tighter than
+    // the solver's own tolerance.
+    const double rel = ref > 0 ? rn / ref : 0.0;
+    const double eta = rel > 0 ? std::clamp(std::max(std::min(1e-2, rel), 0.5 * tol / rel), solver_->settings().tolerance, 1e-1)
+                               : solver_->settings().tolerance;
+    accumulate(st, solver_->solve(mass_free_, 0.0, 1.0, r, dx_free, eta));
+    double ds = 0;
+    if (control) {
+      // w = K^-1 unit (warm-started from the last one: K changes little between steps), then
+      // the scale change that satisfies the linearised constraint.
+      accumulate(st, solver_->solve(mass_free_, 0.0, 1.0, unit_free, w_free, std::min(eta, 1e-3)));
+      gw = grad.dot(w_free);
+      if (!(gw > 0)) throw NumericalError(-1, "static solve: the controlled displacement does not grow with the load");
+      ds = -(c + grad.dot(dx_free)) / gw;
+      const double s = control->scale;
+      ds = std::clamp(ds, s / control->max_growth - s, s * control->max_growth - s);
+      dx_free += ds * w_free;
+    }
     dofs_.scatter(dx_free, dx);
     t0 = std::chrono::steady_clock::now();
-    if (!extra) {
+    if (!extra && !control) {
       x_ += dx;
+      rn = residual(r);
+    } else if (control && it < kFullControlledSteps) {
+      // Under load control the full step: the load moves a lot at first and the contact set
+      // with it, which the next step's tangent then holds (semi-smooth Newton); backtracking
+      // crawled here (each step cut to a few per cent by the penetrations it caused).
+      x_ += dx;
+      setScale(control->scale + ds);
+      constraint();
       rn = residual(r);
     } else {
       // The extra terms (contact) switch on and off: a full step can overshoot into a far
       // worse residual. Backtrack on the residual norm (a few cheap force evaluations save
-      // factorisations).
+      // factorisations); under load control the constraint's violation counts as the load
+      // that would remove it.
+      const double c_weight = control ? unit_free.norm() / gw : 0.0;
+      const double merit = rn + c_weight * std::abs(c);
+      const double s0 = control ? control->scale : 0.0;
       x_trial = x_;
       double alpha = 1;
       for (int k = 0; k < 6; ++k, alpha *= 0.5) {
         x_ = x_trial + alpha * dx;
+        if (control) {
+          setScale(s0 + alpha * ds);
+          constraint();
+        }
         const double rt = residual(r_trial);
-        if (rt < rn || k == 5) {
+        if (rt + c_weight * std::abs(c) < merit || k == 5) {
           rn = rt;
           r.swap(r_trial);
           break;
@@ -323,6 +365,9 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
       }
       dx *= alpha;
     }
+    if (control && control->scale > control->max_scale)
+      throw NumericalError(-1, "static solve: the load scale passed " + fmtSci(control->max_scale) +
+                                   " (the controlled displacement is out of reach)");
     st.forces_ms += msSince(t0);
   }
   throw NumericalError(-1, "static solve did not converge in " + std::to_string(max_iterations) +

@@ -67,7 +67,8 @@ void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, Linea
   calls_since_factor_ = 0;
 }
 
-LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x) {
+LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x,
+                                     double tolerance) {
   LinearSolveStats st;
   const bool direct = settings_.method == LinearSolverSettings::Method::Direct;
   if (direct || stale_ || !chol_.factored() ||
@@ -85,14 +86,15 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
   auto A = [&](const VecX& v, VecX& out) { apply(mass_free, c_m, c_k, v, out); };
   auto M = [&](const VecX& r, VecX& z) { chol_.solve(r, z); };
   if (x.size() != b.size() || !x.allFinite()) x.setZero(b.size());
-  PcgResult r = pcg(A, M, b, x, settings_.tolerance, settings_.max_iterations);
+  const double tol = tolerance > 0 ? tolerance : settings_.tolerance;
+  PcgResult r = pcg(A, M, b, x, tol, settings_.max_iterations);
   if (!r.converged && !st.refactored) {
     // The stale preconditioner is too far off: refresh it and solve again.
     st.solve_ms += msSince(t0);
     refactor(mass_free, c_m, c_k, st);
     t0 = std::chrono::steady_clock::now();
     const int first = r.iterations;
-    r = pcg(A, M, b, x, settings_.tolerance, settings_.max_iterations);
+    r = pcg(A, M, b, x, tol, settings_.max_iterations);
     r.iterations += first;
   }
   st.solve_ms += msSince(t0);
