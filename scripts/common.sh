@@ -12,6 +12,7 @@ PACKAGES=(
   cmake g++ catkin ros-core-dev rosbash libroscpp-dev ros-std-msgs ros-geometry-msgs
   ros-sensor-msgs ros-nav-msgs ros-std-srvs ros-visualization-msgs libdiagnostic-updater-dev libtf2-ros-dev
   python3-rosbag python3-rospy python3-geometry-msgs python3-nav-msgs python3-sensor-msgs python3-visualization-msgs
+  python3-diagnostic-msgs
   libnodeletlib-dev libnodeletlib-tools pluginlib-dev
   python3-rostest librostest-dev libgtest-dev
   # core library

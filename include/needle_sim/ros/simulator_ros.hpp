@@ -25,6 +25,9 @@
 //   ~workspace_margin (0.2 m)      commands farther than this from the tissue's box are rejected
 //   ~as_fast_as_possible (false)   step back to back instead of at the scene's dt
 //   ~display_rate (30 Hz)          rate of the heavy outputs (cloud, surface, error markers, path)
+//   ~output_period (0.001 s)       the output thread sends what the steps produced this often
+//                                  (the latency it adds is at most this); 0: woken by every
+//                                  step (lowest latency, costs the stepping thread ~5-10 %)
 //   ~blas_threads (1)              BLAS threads under CHOLMOD (as the needle_sim tool)
 // Topics: subscribes <needle>/command_pose (geometry_msgs/PoseStamped; the needle axis is
 // the pose's x axis) and <needle>/command_trajectory (needle_sim/NeedleTrajectory: a plan
@@ -126,7 +129,6 @@ class SimulatorRos {
   void lookupTfCommands();  // ~command_source: tf
   bool onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   bool onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::SetTarget::Response& res);
-  void publishTargets(const std_msgs::Header& header);   // light: every step, while subscribed
   void broadcastTargets(const std_msgs::Header& header); // tf, at ~display_rate
   void worker();
   // Messages are built on the worker thread (from the simulation's state, under its lock)
@@ -141,7 +143,31 @@ class SimulatorRos {
   void postJob(std::function<void()> job);
   void outputLoop();
   void stepOnce();  // with sim_mutex_ held
+  // Per step the worker copies the numbers the messages need into a StepFrame (no strings,
+  // no message types) and hands it over in one job; the output thread builds and sends
+  // status, wrenches and target messages from it, names coming from the frame's Labels.
+  struct Labels {  // rebuilt when the scene or the targets change
+    std::string scene;
+    std::vector<std::string> needles, probes, targets;
+    std::vector<Vec3> probe_rest, target_rest, target_start;
+    int electrode = -1;  // the needle named "electrode"
+  };
+  struct StepFrame {
+    ros::Time stamp;
+    std::shared_ptr<const Labels> labels;
+    std::string failure;  // empty while running
+    uint64_t step = 0, overruns = 0, rejected = 0, clamped = 0;
+    double sim_time = 0, step_ms = 0, step_ms_max = 0, publish_ms = 0, rtf = 0, eta_relative = 0;
+    int dofs = 0, elements = 0, linear_iterations = 0, constraint_points = 0;
+    bool interaction = false;
+    std::vector<InsertionState> states;
+    std::vector<Vec3> probe_u, force, moment, tip, target_x, target_v;  // per probe / needle / target
+    int primary = 0;
+    bool target_point = false, target_state = false;  // subscribed
+  };
+  void makeLabels();  // with sim_mutex_ held
   void publish(const StepStats& s, double ms);
+  void sendStep(const StepFrame& f);  // on the output thread
   void publishDisplay();  // path; snapshot for cloud, surface, error markers (with sim_mutex_ held)
   struct DisplayFrame {
     std_msgs::Header header;
@@ -160,6 +186,7 @@ class SimulatorRos {
   std::vector<std::string> overrides_;
   double max_speed_ = 0.05, command_timeout_ = 0.5, workspace_margin_ = 0.2, display_rate_ = 30;
   double command_latency_ = 0.005;
+  double output_period_ = 0.001;
   ros::WallTime last_display_;
   // Display snapshots: the mesh copied once per change (worker thread) ...
   std::shared_ptr<const HexMesh> disp_mesh_;
@@ -203,6 +230,7 @@ class SimulatorRos {
   ros::Publisher status_pub_, cloud_pub_, surface_pub_, error_pub_, target_pub_, target_state_pub_;
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_broadcaster_;
   int primary_target_ = 0;  // sim_mutex_
+  std::shared_ptr<const Labels> labels_;  // sim_mutex_
   ros::Timer diag_timer_;
   std::unique_ptr<diagnostic_updater::Updater> updater_;
   std::vector<ros::Publisher> wrench_pubs_, path_pubs_;
