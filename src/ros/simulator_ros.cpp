@@ -693,7 +693,7 @@ void SimulatorRos::sendStep(const StepFrame& f) {
   }
 }
 
-void SimulatorRos::broadcastTargets(const std_msgs::Header& header) {
+void SimulatorRos::broadcastFrames(const std_msgs::Header& header) {
   std::vector<geometry_msgs::TransformStamped> tfs;
   for (int i = 0; i < sim_->numTargets(); ++i) {
     geometry_msgs::TransformStamped t;
@@ -708,6 +708,19 @@ void SimulatorRos::broadcastTargets(const std_msgs::Header& header) {
       tfs.push_back(t);
     }
   }
+  // Needle tips: the tip node's material frame (x along the needle, as the command poses).
+  for (int i = 0; i < sim_->numNeedles(); ++i) {
+    const NeedleBody& nd = sim_->needle(i);
+    geometry_msgs::TransformStamped t;
+    t.header = header;
+    t.child_frame_id = nd.name() + "/tip";
+    const Vec3 x = nd.tipPosition();
+    const Eigen::Quaterniond q = nd.state().q.back() * nd.beam().restFrame();
+    t.transform.translation.x = x.x(), t.transform.translation.y = x.y(), t.transform.translation.z = x.z();
+    t.transform.rotation.w = q.w(), t.transform.rotation.x = q.x(), t.transform.rotation.y = q.y(),
+    t.transform.rotation.z = q.z();
+    tfs.push_back(t);
+  }
   if (!tfs.empty()) postJob([this, tfs = std::move(tfs)] { tf_broadcaster_->sendTransform(tfs); });
 }
 
@@ -715,7 +728,7 @@ void SimulatorRos::publishDisplay() {
   std_msgs::Header header;
   header.stamp = ros::Time::now();
   header.frame_id = frame_;
-  broadcastTargets(header);
+  broadcastFrames(header);
   for (int i = 0; i < sim_->numNeedles(); ++i) {
     const NeedleBody& nd = sim_->needle(i);
     if (path_pubs_[i].getNumSubscribers() > 0) {
@@ -725,7 +738,7 @@ void SimulatorRos::publishDisplay() {
         geometry_msgs::PoseStamped ps;
         ps.header = header;
         const Vec3& p = nd.state().p[k];
-        const Eigen::Quaterniond& q = nd.state().q[k];
+        const Eigen::Quaterniond q = nd.state().q[k] * nd.beam().restFrame();  // x along the needle
         ps.pose.position.x = p.x(), ps.pose.position.y = p.y(), ps.pose.position.z = p.z();
         ps.pose.orientation.w = q.w(), ps.pose.orientation.x = q.x(), ps.pose.orientation.y = q.y(),
         ps.pose.orientation.z = q.z();

@@ -282,6 +282,23 @@ TEST(NeedleSimNode, CommandedInsertionRejectsBadCommandsAndResets) {
   tf2_ros::TransformListener listener(buffer);
   EXPECT_TRUE(buffer.canTransform("tissue", "target/goal", ros::Time(0), ros::Duration(3.0)));
   EXPECT_TRUE(buffer.canTransform("tissue", "target", ros::Time(0), ros::Duration(3.0)));
+  // The needle tip's frame: at the centre line's last node, x axis along the needle (+x in
+  // this scene), as the command poses; the path's orientations follow the same convention.
+  ASSERT_TRUE(buffer.canTransform("tissue", "needle/tip", ros::Time(0), ros::Duration(3.0)));
+  const geometry_msgs::TransformStamped tip = buffer.lookupTransform("tissue", "needle/tip", ros::Time(0));
+  EXPECT_NEAR(tip.transform.translation.x, L.tipX(), 1e-4);
+  EXPECT_NEAR(tip.transform.translation.y, kY, 1e-3);
+  EXPECT_NEAR(tip.transform.translation.z, kZ, 1e-3);
+  auto axisX = [](const geometry_msgs::Quaternion& q) {  // first column of the rotation
+    return 1 - 2 * (q.y * q.y + q.z * q.z);
+  };
+  EXPECT_GT(axisX(tip.transform.rotation), 0.999);
+  {
+    std::lock_guard<std::mutex> lk(L.m);
+    ASSERT_FALSE(L.path.poses.empty());
+    EXPECT_GT(axisX(L.path.poses.front().pose.orientation), 0.999);
+    EXPECT_GT(axisX(L.path.poses.back().pose.orientation), 0.999);
+  }
   EXPECT_EQ(L.lastStatus().state, "running");
 
   // 9. predict: 12 mm more in 2 s (through the surface, towards the target), 2.5 s simulated

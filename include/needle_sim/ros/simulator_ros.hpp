@@ -45,6 +45,8 @@
 // step 0 and since planning, velocity, distance to each needle tip), target
 // (geometry_msgs/PointStamped, the primary target: the first, or the last set), both only
 // while subscribed; tf frames target/<name> and target (the primary) at ~display_rate.
+// Needle tips: tf frame <needle>/tip (x axis along the needle, as the command poses) at
+// ~display_rate.
 // For an immersed organ, tissue/surface is the organ's own deformed surface.
 // Services: reset (std_srvs/Trigger): back to the scene's initial state (and its targets);
 // set_target (needle_sim/SetTarget): add or move a target at a planning position;
@@ -129,7 +131,7 @@ class SimulatorRos {
   void lookupTfCommands();  // ~command_source: tf
   bool onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   bool onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::SetTarget::Response& res);
-  void broadcastTargets(const std_msgs::Header& header); // tf, at ~display_rate
+  void broadcastFrames(const std_msgs::Header& header);  // tf of targets and needle tips, at ~display_rate
   void worker();
   // Messages are built on the worker thread (from the simulation's state, under its lock)
   // and sent by the output thread: serialisation and socket writes, the tf broadcasts, never
