@@ -45,13 +45,14 @@ CommandCheck checkCommand(const Vec3& position, const Eigen::Quaterniond& orient
   const Eigen::Quaterniond q = orientation.normalized();
   const Vec3 d = q * Vec3::UnitX();
   // Roll: the twist about the axis of q relative to the frame that carries x to the rest
-  // axis and then, by the smallest rotation, to d (BaseTrajectory's convention).
+  // axis and then, by the smallest rotation, to d (BaseTrajectory's convention). The rest
+  // pose's own frame is that one rolled by rest.roll, so the twist is the roll itself.
   const Eigen::Quaterniond ref =
       Eigen::Quaterniond::FromTwoVectors(rest.direction, d) * Eigen::Quaterniond::FromTwoVectors(Vec3::UnitX(), rest.direction);
   const Eigen::Quaterniond twist = ref.conjugate() * q;
   c.pose.position = position;
   c.pose.direction = d.normalized();
-  c.pose.roll = rest.roll + 2 * std::atan2(twist.x(), twist.w());
+  c.pose.roll = 2 * std::atan2(twist.x(), twist.w());
   const double step = (position - last.position).norm(), limit = max_speed * dt;
   if (step > limit) {
     c.verdict = CommandCheck::Verdict::Clamp;
@@ -59,6 +60,15 @@ CommandCheck checkCommand(const Vec3& position, const Eigen::Quaterniond& orient
     c.pose.position = last.position + (position - last.position) * (limit / step);
   }
   return c;
+}
+
+Eigen::Quaterniond nodeFrame(const NeedleBody& needle, int node) {
+  // The beam's node rotation carries the node's rest frame to its current one; the rest
+  // frame in the command convention is the rest base orientation.
+  const BasePose& rest = needle.trajectory().rest();
+  const Eigen::Quaterniond rest_frame = Eigen::Quaterniond::FromTwoVectors(Vec3::UnitX(), rest.direction) *
+                                        Eigen::AngleAxisd(rest.roll, Vec3::UnitX());
+  return (needle.state().q[node] * rest_frame).normalized();
 }
 
 SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
@@ -148,6 +158,11 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
 }
 
 SimulatorRos::~SimulatorRos() {
+  // No callback may start while the threads it would touch are joined and members go.
+  reset_srv_.shutdown();
+  set_target_srv_.shutdown();
+  for (auto& sub : command_subs_) sub.shutdown();
+  diag_timer_.stop();
   predict_srv_.shutdown();
   if (predict_spinner_) predict_spinner_->stop();  // waits for a prediction under way
   timer_.stop();
@@ -166,10 +181,10 @@ SimulatorRos::~SimulatorRos() {
 }
 
 void SimulatorRos::postJob(std::function<void()> job) {
-  bool was_empty;
+  bool wake;
   {
     std::lock_guard<std::mutex> lk(out_mutex_);
-    was_empty = out_queue_.empty();
+    wake = out_queue_.empty() && (output_period_ == 0 || out_idle_);
     if (out_queue_.size() >= kOutQueue) {  // the sender fell far behind: the oldest goes
       out_queue_.pop_front();
       ++out_dropped_;
@@ -178,22 +193,32 @@ void SimulatorRos::postJob(std::function<void()> job) {
   }
   // The output thread takes the whole queue at once. With an output period it wakes on its
   // own: waking it from here cost the stepping thread 5-10 % of a 0.2 ms step (futex wake,
-  // and the woken thread often preempting this one on a 2-core machine).
-  if (was_empty && output_period_ == 0) out_cv_.notify_one();
+  // and the woken thread often preempting this one on a 2-core machine). Only when it has
+  // gone idle (nothing to send for a while) does a job wake it.
+  if (wake) out_cv_.notify_one();
 }
 
 void SimulatorRos::outputLoop() {
+  // Periodic wake-ups while jobs come; idle (woken by the next job) after ~50 empty periods,
+  // so that a failed or paused simulation costs nothing.
+  int empty = 0;
   for (;;) {
     std::deque<std::function<void()>> jobs;
     {
       std::unique_lock<std::mutex> lk(out_mutex_);
       auto ready = [&] { return out_stop_ || !out_queue_.empty(); };
-      if (output_period_ > 0) {
+      if (output_period_ > 0 && empty < 50) {
         out_cv_.wait_for(lk, std::chrono::duration<double>(output_period_), ready);
-        if (!ready()) continue;
+        if (!ready()) {
+          ++empty;
+          continue;
+        }
       } else {
+        out_idle_ = true;
         out_cv_.wait(lk, ready);
+        out_idle_ = false;
       }
+      empty = 0;
       if (out_queue_.empty() && out_stop_) return;
       jobs.swap(out_queue_);
     }
@@ -708,14 +733,14 @@ void SimulatorRos::broadcastFrames(const std_msgs::Header& header) {
       tfs.push_back(t);
     }
   }
-  // Needle tips: the tip node's material frame (x along the needle, as the command poses).
+  // Needle tips, in the command poses' convention.
   for (int i = 0; i < sim_->numNeedles(); ++i) {
     const NeedleBody& nd = sim_->needle(i);
     geometry_msgs::TransformStamped t;
     t.header = header;
-    t.child_frame_id = nd.name() + "/tip";
+    t.child_frame_id = nd.name() + "_tip";
     const Vec3 x = nd.tipPosition();
-    const Eigen::Quaterniond q = nd.state().q.back() * nd.beam().restFrame();
+    const Eigen::Quaterniond q = nodeFrame(nd, nd.beam().numNodes() - 1);
     t.transform.translation.x = x.x(), t.transform.translation.y = x.y(), t.transform.translation.z = x.z();
     t.transform.rotation.w = q.w(), t.transform.rotation.x = q.x(), t.transform.rotation.y = q.y(),
     t.transform.rotation.z = q.z();
@@ -738,7 +763,7 @@ void SimulatorRos::publishDisplay() {
         geometry_msgs::PoseStamped ps;
         ps.header = header;
         const Vec3& p = nd.state().p[k];
-        const Eigen::Quaterniond q = nd.state().q[k] * nd.beam().restFrame();  // x along the needle
+        const Eigen::Quaterniond q = nodeFrame(nd, k);
         ps.pose.position.x = p.x(), ps.pose.position.y = p.y(), ps.pose.position.z = p.z();
         ps.pose.orientation.w = q.w(), ps.pose.orientation.x = q.x(), ps.pose.orientation.y = q.y(),
         ps.pose.orientation.z = q.z();

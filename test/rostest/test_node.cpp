@@ -284,8 +284,8 @@ TEST(NeedleSimNode, CommandedInsertionRejectsBadCommandsAndResets) {
   EXPECT_TRUE(buffer.canTransform("tissue", "target", ros::Time(0), ros::Duration(3.0)));
   // The needle tip's frame: at the centre line's last node, x axis along the needle (+x in
   // this scene), as the command poses; the path's orientations follow the same convention.
-  ASSERT_TRUE(buffer.canTransform("tissue", "needle/tip", ros::Time(0), ros::Duration(3.0)));
-  const geometry_msgs::TransformStamped tip = buffer.lookupTransform("tissue", "needle/tip", ros::Time(0));
+  ASSERT_TRUE(buffer.canTransform("tissue", "needle_tip", ros::Time(0), ros::Duration(3.0)));
+  const geometry_msgs::TransformStamped tip = buffer.lookupTransform("tissue", "needle_tip", ros::Time(0));
   EXPECT_NEAR(tip.transform.translation.x, L.tipX(), 1e-4);
   EXPECT_NEAR(tip.transform.translation.y, kY, 1e-3);
   EXPECT_NEAR(tip.transform.translation.z, kZ, 1e-3);

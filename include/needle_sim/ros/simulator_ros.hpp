@@ -45,7 +45,7 @@
 // step 0 and since planning, velocity, distance to each needle tip), target
 // (geometry_msgs/PointStamped, the primary target: the first, or the last set), both only
 // while subscribed; tf frames target/<name> and target (the primary) at ~display_rate.
-// Needle tips: tf frame <needle>/tip (x axis along the needle, as the command poses) at
+// Needle tips: tf frame <needle>_tip (x axis along the needle, as the command poses) at
 // ~display_rate.
 // For an immersed organ, tissue/surface is the organ's own deformed surface.
 // Services: reset (std_srvs/Trigger): back to the scene's initial state (and its targets);
@@ -99,6 +99,11 @@ struct CommandCheck {
 CommandCheck checkCommand(const Vec3& position, const Eigen::Quaterniond& orientation, const BasePose& last,
                           const BasePose& rest, double dt, double max_speed, const Vec3& lo, const Vec3& hi,
                           double margin);
+
+// Orientation of a needle's beam node in the command poses' convention (x axis along the
+// needle; at rest, the orientation of the scene's base pose): the <needle>_tip frame and the
+// path's poses.
+Eigen::Quaterniond nodeFrame(const NeedleBody& needle, int node);
 
 class SimulatorRos {
  public:
@@ -241,6 +246,7 @@ class SimulatorRos {
   std::condition_variable out_cv_;
   std::deque<std::function<void()>> out_queue_;
   bool out_stop_ = false;
+  bool out_idle_ = false;  // the output thread waits for a job (out_mutex_)
   static constexpr size_t kOutQueue = 20000;
   std::atomic<uint64_t> out_dropped_{0};
   std::atomic<double> out_ms_total_{0.0};

@@ -1,7 +1,7 @@
 #include "needle_sim/sim/tissue_body.hpp"
 
 #include <algorithm>
-#include <cassert>
+#include <stdexcept>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -246,7 +246,7 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     dofs_.gather(f_ext_, fe);
     return fe.norm();
   };
-  double ref = loadNorm();
+  double ref = loadNorm(), rn0 = 0;
   Detach detach{*solver_, supportOrNull()};  // the solver must not keep `blocks` past this call
   // Residual (free DOFs) at the current x_, with the extra terms' blocks.
   auto residual = [&](VecX& out) {
@@ -276,12 +276,16 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     control->scale = s;
   };
   if (control) {
-    assert(control->unit && control->constraint && control->scale > 0);
+    if (!control->unit || !control->constraint || !(control->scale > 0) || !(control->max_growth > 1) ||
+        !(control->tolerance > 0))
+      throw std::invalid_argument("LoadControl needs a unit load, a constraint, a scale > 0, max_growth > 1 and a tolerance > 0");
     dofs_.gather(*control->unit, unit_free);
     w_free.setZero(unit_free.size());
   }
   VecX x_trial, r_trial;
   double rn = 0, gw = 1;
+  const double lin_tol = solver_->settings().tolerance;
+  bool tight = true;  // the last correction was solved to the solver's own tolerance
   for (int it = 0; it <= max_iterations; ++it) {
     auto t0 = std::chrono::steady_clock::now();
     if (it == 0) {
@@ -289,8 +293,9 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
       if (control) constraint();
     }
     if (extra) solver_->setExtraStiffness(&blocks);
-    if (control) ref = std::max(ref, loadNorm());  // the load grows with its scale
-    if (it == 0) ref = std::max(ref, rn);
+    if (it == 0) rn0 = rn;
+    // Relative to the load now in the body (under control its scale changes, either way).
+    ref = std::max(control ? loadNorm() : ref, rn0);
     st.forces_ms += msSince(t0);
     st.newton_residual = ref > 0 ? rn / ref : 0.0;
     if (!std::isfinite(rn)) throw NumericalError(-1, "static solve: residual is NaN/Inf");
@@ -298,8 +303,11 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     // requested accuracy of the displacement (on ill-conditioned problems such as slender
     // cantilevers the residual bottoms out near cond(K) * eps before the solution does);
     // under load control also when the constraint holds.
+    // An inexact correction (CG from zero) underestimates the Newton step: a small one is
+    // trusted only when solved to the solver's own tolerance, else it is solved again so.
     const double un = (x_ - rest_).norm();
-    const bool balanced = rn <= tol * ref || ref == 0 || (it > 0 && dx.norm() <= tol * un);
+    const bool small_step = it > 0 && dx.norm() <= tol * un;
+    const bool balanced = rn <= tol * ref || ref == 0 || (small_step && tight);
     if (balanced && (!control || std::abs(c) <= control->tolerance)) {
       st.newton_iterations = it;
       v_.setZero();
@@ -312,14 +320,16 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     // only as many as the tolerance asks for. Never looser than 1e-1, never tighter than
     // the solver's own tolerance.
     const double rel = ref > 0 ? rn / ref : 0.0;
-    const double eta = rel > 0 ? std::clamp(std::max(std::min(1e-2, rel), 0.5 * tol / rel), solver_->settings().tolerance, 1e-1)
-                               : solver_->settings().tolerance;
+    double eta = rel > 0 ? std::clamp(std::max(std::min(1e-2, rel), 0.5 * tol / rel), lin_tol, std::max(1e-1, lin_tol))
+                         : lin_tol;
+    if (small_step) eta = lin_tol;
+    tight = eta <= lin_tol;
     accumulate(st, solver_->solve(mass_free_, 0.0, 1.0, r, dx_free, eta));
     double ds = 0;
     if (control) {
       // w = K^-1 unit (warm-started from the last one: K changes little between steps), then
       // the scale change that satisfies the linearised constraint.
-      accumulate(st, solver_->solve(mass_free_, 0.0, 1.0, unit_free, w_free, std::min(eta, 1e-3)));
+      accumulate(st, solver_->solve(mass_free_, 0.0, 1.0, unit_free, w_free, std::max(std::min(eta, 1e-3), lin_tol)));
       gw = grad.dot(w_free);
       if (!(gw > 0)) throw NumericalError(-1, "static solve: the controlled displacement does not grow with the load");
       ds = -(c + grad.dot(dx_free)) / gw;
