@@ -5,15 +5,24 @@ set -eo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 BUILD="${NEEDLE_SIM_BUILD_DIR:-$ROOT/build}"
+# The devel space sits beside ./build, not inside it: rosrun skips everything under
+# <package>/build/, so a devel space there hides the node and the tool from it.
+DEVEL="${NEEDLE_SIM_DEVEL_DIR:-$ROOT/devel}"
 
 # Everything the package needs from Debian (package.xml declares the same dependencies).
 PACKAGES=(
   # build tools and ROS 1 from Debian (see DESIGN.md §5)
   cmake g++ catkin ros-core-dev rosbash libroscpp-dev ros-std-msgs ros-geometry-msgs
-  ros-sensor-msgs ros-nav-msgs ros-std-srvs ros-visualization-msgs libdiagnostic-updater-dev libtf2-ros-dev
-  python3-rosbag python3-rospy python3-geometry-msgs python3-nav-msgs python3-sensor-msgs python3-visualization-msgs
-  python3-diagnostic-msgs
+  ros-sensor-msgs ros-nav-msgs ros-std-srvs ros-visualization-msgs ros-trajectory-msgs libtrajectory-msgs-dev
+  libdiagnostic-updater-dev libtf2-ros-dev libactionlib-dev libactionlib-msgs-dev ros-actionlib-msgs
+  libdynamic-reconfigure-config-init-mutex-dev
   libnodeletlib-dev libnodeletlib-tools pluginlib-dev
+  # what a Python client of the node imports (messages, services, the action, tf, reconfigure)
+  python3-rosbag python3-rospy python3-geometry-msgs python3-nav-msgs python3-sensor-msgs python3-visualization-msgs
+  python3-diagnostic-msgs python3-std-srvs python3-tf2-msgs python3-tf2-ros python3-trajectory-msgs
+  python3-actionlib python3-actionlib-msgs python3-dynamic-reconfigure
+  # the viewer, and its test under a virtual display
+  rviz xvfb python3-pil
   python3-rostest librostest-dev libgtest-dev
   # core library
   libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev libcli11-dev libassimp-dev
@@ -40,9 +49,9 @@ install_missing() {
 
 build() {
   # A pyenv python3 first on PATH breaks catkin: always name Debian's interpreter.
-  if [ ! -f "$BUILD/CMakeCache.txt" ]; then
+  if [ ! -f "$BUILD/CMakeCache.txt" ] || ! grep -q "^CATKIN_DEVEL_PREFIX:PATH=$DEVEL\$" "$BUILD/CMakeCache.txt"; then
     cmake -S "$ROOT" -B "$BUILD" -DCMAKE_BUILD_TYPE=Release \
-      -DCATKIN_DEVEL_PREFIX="$BUILD/devel" \
+      -DCATKIN_DEVEL_PREFIX="$DEVEL" \
       -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
   fi
   cmake --build "$BUILD" -j"$(nproc)" >&2
@@ -55,4 +64,4 @@ build() {
   cmake --build "$BUILD" -j"$(nproc)" --target tests >&2
 }
 
-NEEDLE_SIM="$BUILD/devel/lib/needle_sim/needle_sim"
+NEEDLE_SIM="$DEVEL/lib/needle_sim/needle_sim"

@@ -2,11 +2,11 @@
 """Scripted needle insertion for needle_sim_node with ~command_source: topic, so that
 `roslaunch needle_sim sim.launch scripted:=true` shows a full insertion without a robot.
 
-Publishes geometry_msgs/PoseStamped on <needle>/command_pose at ~rate: the base advances along
+Publishes geometry_msgs/PoseStamped on /<~node>/<needle>/command_pose at ~rate: the base advances along
 ~direction from ~base at ~speed by ~depth, holds ~hold seconds, and is withdrawn at the same
 speed, then the script exits. The needle axis is the pose's x axis.
 
-Parameters (private): ~needle (needle), ~base ([-0.035, 0.01, 0.01]), ~direction ([1, 0, 0]),
+Parameters (private): ~node (needle_sim: the simulator's name), ~needle (needle), ~base ([-0.035, 0.01, 0.01]), ~direction ([1, 0, 0]),
 ~speed (0.01 m/s), ~depth (0.023 m), ~hold (0.2 s), ~rate (100 Hz), ~start_delay (1 s).
 """
 import math
@@ -28,6 +28,7 @@ def quaternion_from_x_to(d):
 
 def main():
     rospy.init_node("insertion_publisher")
+    node = rospy.get_param("~node", "needle_sim")
     needle = rospy.get_param("~needle", "needle")
     base = rospy.get_param("~base", [-0.035, 0.01, 0.01])
     d = rospy.get_param("~direction", [1.0, 0.0, 0.0])
@@ -41,7 +42,7 @@ def main():
         return 2
     d = [c / n for c in d]
     w, qx, qy, qz = quaternion_from_x_to(d)
-    pub = rospy.Publisher(needle + "/command_pose", PoseStamped, queue_size=10)
+    pub = rospy.Publisher("/%s/%s/command_pose" % (node, needle), PoseStamped, queue_size=10)
     rospy.sleep(rospy.get_param("~start_delay", 1.0))
     t_in = depth / speed
     t0 = rospy.Time.now()

@@ -7,7 +7,7 @@ the other core) spent per step.
 
 Sample run (the phantom insertion, scripted by the scene):
 
-    source build/devel/setup.bash
+    source devel/setup.bash
     roslaunch needle_sim sim.launch &
     scripts/node_overhead.py --seconds 4
 """
@@ -28,6 +28,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--needle", default="needle")
+    ap.add_argument("--node", default="needle_sim", help="the node's name: its topics are under it")
     args = ap.parse_args(rospy.myargv()[1:])
     rospy.init_node("node_overhead", anonymous=True)
     lock = threading.Lock()
@@ -56,13 +57,13 @@ def main():
                         if last_step[0] is not None:
                             out.append((last_step[0], float(kv.value)))
 
-    subs = [rospy.Subscriber("status", SimStatus, on_status),
+    subs = [rospy.Subscriber(args.node + "/status", SimStatus, on_status),
             rospy.Subscriber("/diagnostics", DiagnosticArray, on_diag),
-            rospy.Subscriber(args.needle + "/wrench", WrenchStamped, count("wrench")),
-            rospy.Subscriber(args.needle + "/path", Path, count("path")),
-            rospy.Subscriber("tissue/deformation", PointCloud2, count("deformation")),
-            rospy.Subscriber("tissue/surface", Marker, count("surface")),
-            rospy.Subscriber("tissue/error_markers", MarkerArray, count("error_markers"))]
+            rospy.Subscriber(args.node + "/" + args.needle + "/wrench", WrenchStamped, count("wrench")),
+            rospy.Subscriber(args.node + "/" + args.needle + "/path", Path, count("path")),
+            rospy.Subscriber(args.node + "/tissue/deformation", PointCloud2, count("deformation")),
+            rospy.Subscriber(args.node + "/tissue/surface", Marker, count("surface")),
+            rospy.Subscriber(args.node + "/tissue/error_markers", MarkerArray, count("error_markers"))]
     rospy.sleep(1.0)  # let the subscriptions settle
     with lock:
         step.clear()

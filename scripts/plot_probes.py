@@ -5,7 +5,7 @@ paper's figures (Bui et al., Figs. "displacement along the needle" and "radial")
 Sample run (after the three shipped insertion scenes have been run):
 
     for n in 8x4x4 16x8x8 32x16x16; do
-      build/devel/lib/needle_sim/needle_sim run config/scenes/phantom_insertion_$n.yaml \
+      devel/lib/needle_sim/needle_sim run config/scenes/phantom_insertion_$n.yaml \
           --out results/phantom_insertion_$n
     done
     scripts/plot_probes.py results/phantom_insertion_8x4x4 \

@@ -171,7 +171,7 @@ def plot(table, path):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=os.path.join(ROOT, "results", "stability"))
-    ap.add_argument("--tool", default=os.path.join(ROOT, "build", "devel", "lib", "needle_sim", "needle_sim"))
+    ap.add_argument("--tool", default=os.path.join(ROOT, "devel", "lib", "needle_sim", "needle_sim"))
     ap.add_argument("--quick", action="store_true", help="only the extremes of each range (the CI subset)")
     ap.add_argument("--no-plot", action="store_true")
     ap.add_argument("--expect-pass", action="store_true", help="exit 1 unless every run passes")

@@ -15,7 +15,7 @@ def parse_args(doc, name):
     """--out (results/<name>), --tool, --reuse; checks the tool and makes the output folder."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=os.path.join(ROOT, "results", name))
-    ap.add_argument("--tool", default=os.path.join(ROOT, "build", "devel", "lib", "needle_sim", "needle_sim"))
+    ap.add_argument("--tool", default=os.path.join(ROOT, "devel", "lib", "needle_sim", "needle_sim"))
     ap.add_argument("--reuse", action="store_true", help="keep runs whose summary.json says ok")
     args = ap.parse_args()
     if not os.access(args.tool, os.X_OK):

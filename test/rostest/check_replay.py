@@ -48,9 +48,9 @@ class Replay(unittest.TestCase):
                     seen["tip"] = m.poses[-1].pose.position.x
                     seen["tip_max"] = max(seen["tip_max"], seen["tip"])
 
-        rospy.Subscriber("status", SimStatus, on_status)
-        rospy.Subscriber("needle/wrench", WrenchStamped, on_wrench)
-        rospy.Subscriber("needle/path", Path, on_path)
+        rospy.Subscriber("needle_sim/status", SimStatus, on_status)
+        rospy.Subscriber("needle_sim/needle/wrench", WrenchStamped, on_wrench)
+        rospy.Subscriber("needle_sim/needle/path", Path, on_path)
         end = time.time() + 60.0
         while time.time() < end:
             with lock:

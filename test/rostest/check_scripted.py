@@ -29,8 +29,8 @@ class ScriptedInsertion(unittest.TestCase):
                     tip["x"] = m.poses[-1].pose.position.x
                     tip["max"] = max(tip["max"], tip["x"])
 
-        rospy.Subscriber("status", SimStatus, on_status)
-        rospy.Subscriber("needle/path", Path, on_path)
+        rospy.Subscriber("needle_sim/status", SimStatus, on_status)
+        rospy.Subscriber("needle_sim/needle/path", Path, on_path)
         deadline = rospy.Time.now() + rospy.Duration(20.0)
         while not rospy.is_shutdown() and rospy.Time.now() < deadline:
             with lock:

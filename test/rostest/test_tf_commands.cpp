@@ -27,7 +27,7 @@ double tip() {
 }  // namespace
 
 TEST(TfCommands, BaseFollowsTheTransform) {
-  ros::NodeHandle nh;
+  ros::NodeHandle nh("needle_sim");  // the node's private namespace
   auto s1 = nh.subscribe<nav_msgs::Path>("needle/path", 10, [&](const nav_msgs::Path::ConstPtr& p) {
     std::lock_guard<std::mutex> lk(m);
     if (!p->poses.empty()) tip_x = p->poses.back().pose.position.x;

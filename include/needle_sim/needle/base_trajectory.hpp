@@ -33,6 +33,9 @@ class BaseTrajectory {
   }
   // Commanded pose at time t.
   BasePose pose(double t) const;
+  // The pose a fraction s in [0, 1] of the way from a to b, as pose(t) interpolates between
+  // keyframes: position and roll linearly, the axis by slerp of its rotation from the rest axis.
+  BasePose interpolate(const BasePose& a, const BasePose& b, double s) const;
   // Rotation carrying the rest base frame to the commanded one: the minimal rotation from
   // the rest axis to the commanded axis, after a roll about the rest axis.
   Eigen::Quaterniond orientation(const BasePose& p) const;
@@ -64,6 +67,19 @@ class BaseTrajectory {
     size_t k = 0;
     while (k + 1 < keys_.size() && keys_[k + 1].t <= t) ++k;
     if (k > 0) keys_.erase(keys_.begin(), keys_.begin() + static_cast<long>(k));
+  }
+  // Keeps what is commanded up to time t and nothing after: the keyframes after t go, and
+  // one at t holds the pose commanded for t (a new command takes over from there).
+  void holdFrom(double t) {
+    const BasePose at = pose(t);
+    while (!keys_.empty() && keys_.back().t > t) keys_.pop_back();
+    if (keys_.empty() || keys_.back().t < t) keys_.push_back({t, at});
+  }
+  // Time of the last keyframe before t (-infinity when there is none).
+  double lastKeyTimeBefore(double t) const {
+    for (auto it = keys_.rbegin(); it != keys_.rend(); ++it)
+      if (it->t < t) return it->t;
+    return -std::numeric_limits<double>::infinity();
   }
   // Time of the last keyframe (-infinity when there is none).
   double lastTime() const { return keys_.empty() ? -std::numeric_limits<double>::infinity() : keys_.back().t; }

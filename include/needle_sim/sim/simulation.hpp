@@ -72,6 +72,8 @@ class Simulation {
   const VecX* estimateReference() const { return reference_.size() ? &reference_ : nullptr; }
   // The last estimate computed (by the adaptation or errorEstimate()), or nullptr.
   const ErrorEstimate* lastEstimate() const { return estimate_ever_ ? &estimate_ : nullptr; }
+  // The estimate of the current state if one was computed since the last step, or nullptr.
+  const ErrorEstimate* currentEstimate() const { return estimate_step_ == step_ ? &estimate_ : nullptr; }
   // Refines the given tissue elements now (tests, scripted refinement), carrying the state
   // over; needs an adaptivity section.
   AdaptationResult refineElements(const std::vector<int>& elements);

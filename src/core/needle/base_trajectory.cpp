@@ -26,12 +26,15 @@ BasePose BaseTrajectory::pose(double t) const {
   const auto it = std::upper_bound(keys_.begin(), keys_.end(), t, [](double v, const Key& k) { return v < k.t; });
   const Key& b = *it;
   const Key& a = *(it - 1);
-  const double s = (t - a.t) / (b.t - a.t);
+  return interpolate(a.pose, b.pose, (t - a.t) / (b.t - a.t));
+}
+
+BasePose BaseTrajectory::interpolate(const BasePose& a, const BasePose& b, double s) const {
   BasePose p;
-  p.position = (1 - s) * a.pose.position + s * b.pose.position;
-  p.roll = (1 - s) * a.pose.roll + s * b.pose.roll;
-  const Eigen::Quaterniond qa = Eigen::Quaterniond::FromTwoVectors(rest_.direction, a.pose.direction);
-  const Eigen::Quaterniond qb = Eigen::Quaterniond::FromTwoVectors(rest_.direction, b.pose.direction);
+  p.position = (1 - s) * a.position + s * b.position;
+  p.roll = (1 - s) * a.roll + s * b.roll;
+  const Eigen::Quaterniond qa = Eigen::Quaterniond::FromTwoVectors(rest_.direction, a.direction);
+  const Eigen::Quaterniond qb = Eigen::Quaterniond::FromTwoVectors(rest_.direction, b.direction);
   p.direction = (qa.slerp(s, qb) * rest_.direction).normalized();
   return p;
 }

@@ -1,0 +1,163 @@
+#pragma once
+// The command guard: the last check between a robot's commands and the simulated needle
+// (doc/ros_api.md, "Command guard"). Every command path of the node (pose topic, tf,
+// trajectory topics, predict, the insertion action) goes through it:
+//   admit()      per pose command, on arrival: finite, unit quaternion, stamp neither stale,
+//                nor too far ahead, nor older than the last accepted one, inside the
+//                workspace; converted to (axis, roll) in the pose convention.
+//   follow()     per admitted command, at a step boundary: the base leaves what it was
+//                commanded before at the instant the new command takes over and approaches
+//                the new pose no faster than the linear and angular limits (a command that
+//                asks for more is slowed down, counted, never jumped to), also after a pause.
+//   checkPlan()  a planned trajectory, whole: any waypoint breaking a rule or a limit
+//                rejects it (a plan is never silently changed).
+// Rules are counted one by one (lifetime counters, thread-safe), so a robot team sees which
+// rule its commands break. No ROS here: times are simulation seconds.
+#include <array>
+#include <atomic>
+#include <cstdint>
+#include <limits>
+#include <mutex>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <Eigen/Geometry>
+
+#include "needle_sim/core/types.hpp"
+#include "needle_sim/needle/base_trajectory.hpp"
+
+namespace needle_sim {
+
+// The limits, each a node parameter of the same name (doc/ros_api.md).
+struct CommandLimits {
+  double max_speed = 0.05;               // [m/s] base translation
+  double max_angular_speed = 1.0;        // [rad/s] base rotation (axis turn and roll together)
+  double max_angular_speed_inserted = 0.1;  // [rad/s] turn of the needle axis while it is in the tissue
+  double max_future = 0.01;              // [s] stamps further ahead of now are rejected
+  double command_timeout = 0.5;          // [s] stamps older than this are rejected
+  double quaternion_tolerance = 0.01;    // | |q| - 1 | above this: rejected, not normalised
+  double workspace_margin = 0.2;         // [m] around the tissue's box
+  double command_latency = 0.005;        // [s] a stamped command is reached at stamp + this
+  Vec3 workspace_min = Vec3::Zero(), workspace_max = Vec3::Zero();  // the tissue's box
+  // Throws InputError (key: prefix + parameter name) for a limit out of its range.
+  void validate(const std::string& prefix = "~") const;
+};
+
+enum class GuardRule : int {
+  NonFinite,        // NaN or Inf in a position or quaternion
+  Quaternion,       // quaternion norm far from 1 (zero included)
+  Stale,            // stamp older than command_timeout
+  Future,           // stamp more than max_future ahead of now
+  OutOfOrder,       // stamp older than the needle's last accepted command
+  Workspace,        // position outside the tissue's box plus workspace_margin
+  Frame,            // frame_id with no transform to the tissue frame (ROS layer)
+  EmptyFrame,       // empty frame_id, unless allowed (ROS layer)
+  Plan,             // a plan (trajectory, predict, action goal) breaking any rule: rejected whole
+  LinearSpeed,      // slowed down to max_speed
+  AngularSpeed,     // slowed down to max_angular_speed
+  AngularInserted,  // axis turn slowed down to max_angular_speed_inserted
+  kCount
+};
+constexpr int kGuardRules = static_cast<int>(GuardRule::kCount);
+// snake_case name (status, diagnostics, warnings) and the parameter that sets it.
+const char* ruleName(GuardRule r);
+const char* ruleParameter(GuardRule r);
+// LinearSpeed, AngularSpeed, AngularInserted slow a command down; the others reject it.
+bool ruleRejects(GuardRule r);
+
+// A base pose command as it arrives: orientation as given (not normalised; x axis along the
+// needle), stamp in simulation seconds (NaN: unstamped, taken as received now).
+struct PoseCommand {
+  Vec3 position = Vec3::Zero();
+  Eigen::Quaterniond orientation = Eigen::Quaterniond::Identity();
+  double stamp = std::numeric_limits<double>::quiet_NaN();
+};
+
+struct Admission {
+  bool accepted = false;
+  GuardRule rule = GuardRule::NonFinite;  // when rejected
+  std::string reason;                     // when rejected: the rule, the value, the limit
+  BasePose pose;                          // (axis, roll), roll unwrapped against the last command
+  double at = 0;                          // simulation time it asks to be reached at
+};
+
+// What follow() did with a command.
+struct Following {
+  double reached_at = 0;  // keyframe time of the commanded pose
+  bool limited = false;   // later than asked, for a limit
+  GuardRule rule = GuardRule::LinearSpeed;  // the limit that set the pace, when limited
+};
+
+// One waypoint of a plan as it arrives (time from the plan's start, pose as given).
+struct PlanWaypoint {
+  double time = 0;
+  Vec3 position = Vec3::Zero();
+  Eigen::Quaterniond orientation = Eigen::Quaterniond::Identity();
+};
+using PlanPoses = std::vector<std::pair<double, BasePose>>;  // (time from start, pose)
+
+// Rates of the base motion from pose a to pose b over a unit of time: translation [m],
+// rotation and turn of the axis [rad], the rotations as the largest rate along the
+// interpolated path (BaseTrajectory's interpolation, sampled).
+struct SegmentMotion {
+  double distance = 0, rotation = 0, axis_turn = 0;
+};
+SegmentMotion segmentMotion(const BaseTrajectory& traj, const BasePose& a, const BasePose& b);
+
+class CommandGuard {
+ public:
+  struct NeedleInfo {
+    BasePose rest;         // the scene's base pose (pose convention, roll unwrapping)
+    double length = 0;     // for the rigid tip position in plan checks
+  };
+  CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> needles);
+
+  // New limits (dynamic_reconfigure): validated, effective for the next command.
+  void setLimits(const CommandLimits& limits);
+  CommandLimits limits() const;
+
+  // A pose command for needle n, received at simulation time now.
+  Admission admit(int n, const PoseCommand& c, double now);
+
+  // Applies an admitted command to the needle's base trajectory at a step boundary (now:
+  // the simulation time at the start of the next step, dt its length). inserted: the needle
+  // is in the tissue (the axis-turn limit applies).
+  Following follow(int n, BaseTrajectory& traj, const Admission& a, double now, double dt, bool inserted);
+
+  // Checks a plan that starts at `from` (the base pose when it starts); fills `out` with
+  // the waypoints as base poses, or returns why it is refused ("waypoint k: ..."). inserted:
+  // the needle is in the tissue now; a segment whose rigid tip lies in the tissue's box
+  // counts as inserted too. Counts GuardRule::Plan when refused.
+  std::string checkPlan(int n, const std::vector<PlanWaypoint>& waypoints, const BasePose& from, double dt,
+                        bool inserted, PlanPoses& out);
+
+  // After a plan was taken: the base's last commanded pose and stamp (unstamped plans do not
+  // move the stamp order).
+  void planTaken(int n, const BasePose& last);
+
+  void record(GuardRule r) { ++counts_[static_cast<int>(r)]; }
+  uint64_t count(GuardRule r) const { return counts_[static_cast<int>(r)].load(); }
+  std::array<uint64_t, kGuardRules> counts() const;
+  uint64_t rejected() const;  // commands and plans rejected, all rules
+  uint64_t limited() const;   // commands slowed down
+  // Back to the scene's rest poses (the stamp order starts again); the counters are kept:
+  // they count over the node's lifetime.
+  void restart();
+
+ private:
+  Admission reject(GuardRule r, const std::string& why);
+  // Checks position and orientation (finite, unit, workspace); converts to a base pose.
+  bool checkPose(int n, const Vec3& p, const Eigen::Quaterniond& q, double roll_near, GuardRule& rule,
+                 std::string& why, BasePose& pose) const;
+  bool tipInTissue(int n, const BasePose& p) const;
+
+  mutable std::mutex mutex_;  // limits_, last_stamp_, last_roll_
+  CommandLimits limits_;
+  std::vector<NeedleInfo> needles_;
+  std::vector<double> last_stamp_;  // -inf: none yet
+  std::vector<double> last_roll_;
+  std::array<std::atomic<uint64_t>, kGuardRules> counts_{};
+};
+
+}  // namespace needle_sim

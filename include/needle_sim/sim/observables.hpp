@@ -1,0 +1,77 @@
+#pragma once
+// What every consumer reports about a running simulation, computed once, here: the
+// recorder (timeseries.csv, summary.json), predict, the command-line tool and the ROS node
+// read an Observables and its ObservableNames; none of them asks the bodies itself. Signs
+// and frames (doc/observables.md):
+//   - positions in the tissue frame [m]; the needle frames in the pose convention
+//     (command/pose_convention.hpp: x along the needle, towards the tip);
+//   - holder force and moment: what the needle exerts on its holder (what a force/torque
+//     sensor between holder and needle reads), the moment about the base node, in the tissue
+//     frame and in the needle's base frame; an insertion the tissue resists gives a negative
+//     axial (base-frame x) force;
+//   - target displacement since step 0 (after the brain shift, if any) and shift from the
+//     planning position; tip distances per needle.
+// observe() reuses the vectors' storage: no allocation per step once the sizes are known.
+#include <limits>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <Eigen/Geometry>
+
+#include "needle_sim/contact/needle_tissue_interaction.hpp"
+#include "needle_sim/core/types.hpp"
+#include "needle_sim/sim/tissue_body.hpp"
+
+namespace needle_sim {
+
+class Simulation;
+
+struct NeedleObservation {
+  Vec3 tip = Vec3::Zero(), tip_direction = Vec3::UnitX();
+  Eigen::Quaterniond tip_frame = Eigen::Quaterniond::Identity();
+  Vec3 base = Vec3::Zero();
+  Eigen::Quaterniond base_frame = Eigen::Quaterniond::Identity();
+  Vec3 holder_force = Vec3::Zero(), holder_moment = Vec3::Zero();            // tissue frame
+  Vec3 holder_force_base = Vec3::Zero(), holder_moment_base = Vec3::Zero();  // base frame
+  InsertionState state = InsertionState::Approaching;  // Approaching without an interaction
+  int constraints = 0;                                 // active constraint points
+  double puncture_force = std::numeric_limits<double>::quiet_NaN();
+  bool inserted() const { return constraints > 0; }
+};
+
+struct TargetObservation {
+  Vec3 position = Vec3::Zero(), velocity = Vec3::Zero();
+  Vec3 displacement = Vec3::Zero();  // since step 0
+  Vec3 shift = Vec3::Zero();         // from the planning position
+  std::vector<double> tip_distances;  // per needle
+};
+
+struct Observables {
+  long step = 0;
+  double time = 0;
+  int dofs = 0, tissue_dofs = 0, tissue_elements = 0;
+  double kinetic_energy = 0;
+  std::vector<Vec3> probe_displacement;
+  std::vector<NeedleObservation> needles;
+  std::vector<TargetObservation> targets;
+  // The last SPR estimate the simulation computed (none: has_estimate false, zeros).
+  bool has_estimate = false;
+  double eta_global = 0, eta_max = 0, eta_relative = 0;
+  StepStats stats;  // of the last step
+};
+
+// Names and fixed values, which change only when the scene or its targets do.
+struct ObservableNames {
+  std::string scene;
+  std::vector<std::string> needles, probes, targets;
+  std::vector<Vec3> probe_rest, target_rest, target_start;
+  std::vector<double> needle_radius;
+  int electrode = -1;  // the needle named "electrode" (DBS), or -1
+};
+
+void observe(const Simulation& sim, Observables& out);
+Observables observe(const Simulation& sim);
+ObservableNames observableNames(const Simulation& sim);
+
+}  // namespace needle_sim

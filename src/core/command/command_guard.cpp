@@ -1,0 +1,289 @@
+#include "needle_sim/command/command_guard.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+
+#include "needle_sim/command/pose_convention.hpp"
+#include "needle_sim/core/error.hpp"
+
+namespace needle_sim {
+
+namespace {
+
+struct RuleInfo {
+  const char* name;
+  const char* parameter;
+  bool rejects;
+};
+constexpr RuleInfo kRules[kGuardRules] = {
+    {"non_finite", "", true},
+    {"quaternion_norm", "quaternion_tolerance", true},
+    {"stale", "command_timeout", true},
+    {"future", "max_future", true},
+    {"out_of_order", "", true},
+    {"workspace", "workspace_margin", true},
+    {"frame", "tissue_frame", true},
+    {"empty_frame", "allow_empty_frame", true},
+    {"plan", "", true},
+    {"linear_speed", "max_speed", false},
+    {"angular_speed", "max_angular_speed", false},
+    {"angular_speed_inserted", "max_angular_speed_inserted", false},
+};
+
+std::string fmt(const char* f, double a, double b = 0, double c = 0) {
+  char buf[200];
+  std::snprintf(buf, sizeof buf, f, a, b, c);
+  return buf;
+}
+
+// Samples of the interpolated path per segment: the rotation rate is taken as the largest
+// over these sub-intervals (the interpolation is smooth: 32 samples are within 0.1 % of the
+// true peak for turns up to 180 degrees; the tests check the sampled trajectory).
+constexpr int kSamples = 32;
+
+}  // namespace
+
+const char* ruleName(GuardRule r) { return kRules[static_cast<int>(r)].name; }
+const char* ruleParameter(GuardRule r) { return kRules[static_cast<int>(r)].parameter; }
+bool ruleRejects(GuardRule r) { return kRules[static_cast<int>(r)].rejects; }
+
+void CommandLimits::validate(const std::string& prefix) const {
+  auto positive = [&](double v, const char* name) {
+    if (!(v > 0) || !std::isfinite(v)) throw InputError("", prefix + name, "must be positive and finite");
+  };
+  auto non_negative = [&](double v, const char* name) {
+    if (!(v >= 0) || !std::isfinite(v)) throw InputError("", prefix + name, "must be >= 0 and finite");
+  };
+  positive(max_speed, "max_speed");
+  positive(max_angular_speed, "max_angular_speed");
+  positive(max_angular_speed_inserted, "max_angular_speed_inserted");
+  non_negative(max_future, "max_future");
+  positive(command_timeout, "command_timeout");
+  non_negative(workspace_margin, "workspace_margin");
+  non_negative(command_latency, "command_latency");
+  if (!(quaternion_tolerance > 0) || !(quaternion_tolerance < 1))
+    throw InputError("", prefix + "quaternion_tolerance", "must be in (0, 1)");
+  if (max_angular_speed_inserted > max_angular_speed)
+    throw InputError("", prefix + "max_angular_speed_inserted", "must not exceed ~max_angular_speed");
+}
+
+SegmentMotion segmentMotion(const BaseTrajectory& traj, const BasePose& a, const BasePose& b) {
+  SegmentMotion m;
+  m.distance = (b.position - a.position).norm();
+  BasePose prev = a;
+  Eigen::Quaterniond q_prev = traj.orientation(a);
+  for (int i = 1; i <= kSamples; ++i) {
+    const BasePose p = traj.interpolate(a, b, static_cast<double>(i) / kSamples);
+    const Eigen::Quaterniond q = traj.orientation(p);
+    m.rotation = std::max(m.rotation, kSamples * q.angularDistance(q_prev));
+    const double c = std::clamp(p.direction.dot(prev.direction), -1.0, 1.0);
+    m.axis_turn = std::max(m.axis_turn, kSamples * std::acos(c));
+    prev = p;
+    q_prev = q;
+  }
+  return m;
+}
+
+CommandGuard::CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> needles)
+    : limits_(limits), needles_(std::move(needles)) {
+  limits_.validate();
+  for (auto& c : counts_) c = 0;
+  restart();
+}
+
+void CommandGuard::setLimits(const CommandLimits& limits) {
+  limits.validate();
+  std::lock_guard<std::mutex> lk(mutex_);
+  limits_ = limits;
+}
+
+CommandLimits CommandGuard::limits() const {
+  std::lock_guard<std::mutex> lk(mutex_);
+  return limits_;
+}
+
+void CommandGuard::restart() {
+  std::lock_guard<std::mutex> lk(mutex_);
+  last_stamp_.assign(needles_.size(), -std::numeric_limits<double>::infinity());
+  last_roll_.clear();
+  for (const auto& n : needles_) last_roll_.push_back(n.rest.roll);
+}
+
+std::array<uint64_t, kGuardRules> CommandGuard::counts() const {
+  std::array<uint64_t, kGuardRules> a{};
+  for (int i = 0; i < kGuardRules; ++i) a[i] = counts_[i].load();
+  return a;
+}
+
+uint64_t CommandGuard::rejected() const {
+  uint64_t s = 0;
+  for (int i = 0; i < kGuardRules; ++i)
+    if (kRules[i].rejects) s += counts_[i].load();
+  return s;
+}
+
+uint64_t CommandGuard::limited() const {
+  uint64_t s = 0;
+  for (int i = 0; i < kGuardRules; ++i)
+    if (!kRules[i].rejects) s += counts_[i].load();
+  return s;
+}
+
+Admission CommandGuard::reject(GuardRule r, const std::string& why) {
+  record(r);
+  Admission a;
+  a.accepted = false;
+  a.rule = r;
+  a.reason = why;
+  return a;
+}
+
+bool CommandGuard::checkPose(int n, const Vec3& p, const Eigen::Quaterniond& q, double roll_near, GuardRule& rule,
+                             std::string& why, BasePose& pose) const {
+  if (!p.allFinite() || !q.coeffs().allFinite()) {
+    rule = GuardRule::NonFinite;
+    why = "non-finite position or orientation";
+    return false;
+  }
+  const double norm = q.norm();
+  if (std::abs(norm - 1) > limits_.quaternion_tolerance) {
+    rule = GuardRule::Quaternion;
+    why = fmt("quaternion norm %.6g is not 1 (tolerance ~quaternion_tolerance = %g): not normalised, rejected", norm,
+              limits_.quaternion_tolerance);
+    return false;
+  }
+  const Vec3 lo = limits_.workspace_min - Vec3::Constant(limits_.workspace_margin);
+  const Vec3 hi = limits_.workspace_max + Vec3::Constant(limits_.workspace_margin);
+  if (((p - lo).array() < 0).any() || ((p - hi).array() > 0).any()) {
+    rule = GuardRule::Workspace;
+    why = fmt("position (%.4g, %.4g, %.4g) m is outside the workspace (the tissue's box plus ~workspace_margin)", p.x(),
+              p.y(), p.z());
+    return false;
+  }
+  pose = basePoseFrom(p, q.normalized(), needles_[n].rest, roll_near);
+  return true;
+}
+
+Admission CommandGuard::admit(int n, const PoseCommand& c, double now) {
+  std::lock_guard<std::mutex> lk(mutex_);
+  const bool stamped = !std::isnan(c.stamp);
+  if (stamped && !std::isfinite(c.stamp)) return reject(GuardRule::NonFinite, "non-finite stamp");
+  const double stamp = stamped ? c.stamp : now;
+  if (now - stamp > limits_.command_timeout)
+    return reject(GuardRule::Stale,
+                  fmt("stale: stamped %.4g s ago (~command_timeout = %g s)", now - stamp, limits_.command_timeout));
+  if (stamp - now > limits_.max_future)
+    return reject(GuardRule::Future, fmt("stamped %.4g s in the future (~max_future = %g s): clocks out of sync?",
+                                         stamp - now, limits_.max_future));
+  if (stamp < last_stamp_[n])
+    return reject(GuardRule::OutOfOrder, fmt("stamped %.4g s before the last accepted command: out of order",
+                                             last_stamp_[n] - stamp));
+  Admission a;
+  GuardRule rule;
+  std::string why;
+  if (!checkPose(n, c.position, c.orientation, last_roll_[n], rule, why, a.pose)) return reject(rule, why);
+  a.accepted = true;
+  a.at = stamp + limits_.command_latency;
+  last_stamp_[n] = stamp;
+  last_roll_[n] = a.pose.roll;
+  return a;
+}
+
+Following CommandGuard::follow(int n, BaseTrajectory& traj, const Admission& a, double now, double dt, bool inserted) {
+  const CommandLimits lim = limits();
+  // The command asks to be reached at a.at, never within the step under way. The base leaves
+  // what was commanded before at the later of now and the last keyframe before that time:
+  // a keyframe the base has not reached yet and that this command supersedes (one slowed
+  // down by a limit, or one for the same instant) is dropped, one that was reached stays.
+  const double te = std::max(a.at, now + dt);
+  const double ts = std::max(now, traj.lastKeyTimeBefore(te));
+  traj.holdFrom(ts);
+  const BasePose from = traj.pose(ts);
+  const SegmentMotion m = segmentMotion(traj, from, a.pose);
+  Following f;
+  double need = m.distance / lim.max_speed;
+  f.rule = GuardRule::LinearSpeed;
+  if (m.rotation / lim.max_angular_speed > need) {
+    need = m.rotation / lim.max_angular_speed;
+    f.rule = GuardRule::AngularSpeed;
+  }
+  if (inserted && m.axis_turn / lim.max_angular_speed_inserted > need) {
+    need = m.axis_turn / lim.max_angular_speed_inserted;
+    f.rule = GuardRule::AngularInserted;
+  }
+  double t = te;
+  if (ts + need > te) {
+    // Too fast for a limit: reached later, at the limit's pace (relative slack so that a
+    // command exactly at the limit is not counted).
+    if (ts + need > te + 1e-9 * std::max(1.0, need)) {
+      f.limited = true;
+      record(f.rule);
+    }
+    t = ts + need;
+  }
+  if (t > ts) traj.add(t, a.pose);
+  // (t == ts: the pose is where the base is at ts, nothing to move)
+  if (traj.size() > 256) traj.dropBefore(now);
+  f.reached_at = t;
+  return f;
+}
+
+bool CommandGuard::tipInTissue(int n, const BasePose& p) const {
+  const Vec3 tip = p.position + needles_[n].length * p.direction;
+  return ((tip - limits_.workspace_min).array() >= 0).all() && ((tip - limits_.workspace_max).array() <= 0).all();
+}
+
+std::string CommandGuard::checkPlan(int n, const std::vector<PlanWaypoint>& w, const BasePose& from, double dt,
+                                    bool inserted, PlanPoses& out) {
+  std::lock_guard<std::mutex> lk(mutex_);
+  out.clear();
+  auto refuse = [&](size_t k, const std::string& why) {
+    record(GuardRule::Plan);
+    out.clear();
+    return "waypoint " + std::to_string(k) + ": " + why;
+  };
+  if (w.empty()) {
+    record(GuardRule::Plan);
+    return "no waypoints";
+  }
+  // Rates are measured with the trajectory's own interpolation (rest pose of this needle).
+  const BaseTrajectory shape(needles_[n].rest);
+  BasePose prev = from;
+  double t_prev = 0;
+  for (size_t k = 0; k < w.size(); ++k) {
+    const double t = w[k].time;
+    if (!std::isfinite(t) || t < 0 || (k > 0 && t <= t_prev)) return refuse(k, "time_from_start not increasing");
+    GuardRule rule;
+    std::string why;
+    BasePose p;
+    if (!checkPose(n, w[k].position, w[k].orientation, prev.roll, rule, why, p))
+      return refuse(k, std::string(ruleName(rule)) + ": " + why);
+    const double span = std::max(t - t_prev, dt);
+    const SegmentMotion m = segmentMotion(shape, prev, p);
+    // A plan is not silently changed: a segment too fast for a limit rejects it.
+    const double tol = 1 + 1e-9;
+    if (m.distance > limits_.max_speed * span * tol)
+      return refuse(k, fmt("linear_speed: %.4g m/s, faster than ~max_speed = %g m/s", m.distance / span,
+                           limits_.max_speed));
+    if (m.rotation > limits_.max_angular_speed * span * tol)
+      return refuse(k, fmt("angular_speed: %.4g rad/s, faster than ~max_angular_speed = %g rad/s", m.rotation / span,
+                           limits_.max_angular_speed));
+    const bool in = inserted || tipInTissue(n, prev) || tipInTissue(n, p);
+    if (in && m.axis_turn > limits_.max_angular_speed_inserted * span * tol)
+      return refuse(k, fmt("angular_speed_inserted: the axis turns at %.4g rad/s in the tissue, faster than "
+                           "~max_angular_speed_inserted = %g rad/s",
+                           m.axis_turn / span, limits_.max_angular_speed_inserted));
+    out.emplace_back(t, p);
+    prev = p;
+    t_prev = t;
+  }
+  return "";
+}
+
+void CommandGuard::planTaken(int n, const BasePose& last) {
+  std::lock_guard<std::mutex> lk(mutex_);
+  last_roll_[n] = last.roll;
+}
+
+}  // namespace needle_sim

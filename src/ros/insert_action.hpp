@@ -1,0 +1,55 @@
+#pragma once
+// The ~insert action (needle_sim/InsertNeedle): a straight insertion along the needle's
+// current axis, towards a named target or a point, by a depth or to a stop distance, at a
+// speed; feedback (tip-target distance, holder force, insertion state) at 10 Hz of simulated
+// time; preempted (cancel, or a new goal), the needle holds where it is. The motion is a
+// plan the command guard checks like any other. Goal handles are only touched from the
+// callback threads and the output thread, never under the simulation's lock (actionlib
+// calls back with its own lock held).
+#include <actionlib/server/action_server.h>
+#include <needle_sim/InsertNeedleAction.h>
+
+#include <mutex>
+#include <optional>
+#include <string>
+
+#include "needle_sim/core/types.hpp"
+#include "needle_sim/sim/observables.hpp"
+
+namespace needle_sim {
+
+class SimulatorRos;
+
+class InsertAction {
+ public:
+  using Server = actionlib::ActionServer<needle_sim::InsertNeedleAction>;
+  InsertAction(SimulatorRos& node, ros::NodeHandle& pnh, double default_speed);
+  // On the stepping thread (the simulation's lock held), after each step.
+  void update(const Observables& o);
+  // Ends the goal under way (a numerical failure, a reset).
+  void abort(const std::string& why);
+  void shutdown();
+
+ private:
+  void onGoal(Server::GoalHandle gh);
+  void onCancel(Server::GoalHandle gh);
+  struct Active {
+    Server::GoalHandle gh;
+    int needle = 0;
+    int target = -1;  // index, or -1: the fixed point
+    Vec3 point = Vec3::Zero();
+    Vec3 axis = Vec3::UnitX(), base0 = Vec3::Zero();
+    double duration = 0;  // of the motion [s]
+    double end = 0;       // simulation time it ends (known once the plan is taken)
+    double last_feedback = -1;
+    bool taken = false;
+  };
+  needle_sim::InsertNeedleResult result(const Active& a, const Observables& o, const std::string& msg) const;
+  SimulatorRos& node_;
+  double default_speed_;
+  std::mutex mutex_;  // active_
+  std::optional<Active> active_;
+  Server server_;
+};
+
+}  // namespace needle_sim

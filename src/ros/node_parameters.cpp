@@ -1,0 +1,78 @@
+#include "node_parameters.hpp"
+
+#include <cmath>
+
+#include "needle_sim/core/error.hpp"
+
+namespace needle_sim {
+
+NodeParameters readParameters(const ros::NodeHandle& pnh) {
+  NodeParameters p;
+  if (!pnh.getParam("scene", p.scene_file))
+    throw InputError("", "~scene", "missing private parameter: the scene YAML file");
+  pnh.param("set", p.overrides, std::vector<std::string>{});
+  pnh.param("tissue_frame", p.tissue_frame, p.tissue_frame);
+  if (p.tissue_frame.empty()) throw InputError("", "~tissue_frame", "must not be empty");
+  pnh.param("parent_frame", p.parent_frame, p.parent_frame);
+  std::vector<double> pose;
+  if (pnh.getParam("tissue_pose", pose)) {
+    if (pose.size() != 7) throw InputError("", "~tissue_pose", "must be [x, y, z, qx, qy, qz, qw]");
+    double n = 0;
+    for (int i = 0; i < 7; ++i) {
+      if (!std::isfinite(pose[i])) throw InputError("", "~tissue_pose", "must be finite");
+      p.tissue_pose[i] = pose[i];
+      if (i >= 3) n += pose[i] * pose[i];
+    }
+    if (std::abs(std::sqrt(n) - 1) > 1e-6) throw InputError("", "~tissue_pose", "the quaternion must have norm 1");
+  }
+  pnh.param("publish_tissue_transform", p.publish_tissue_transform, p.publish_tissue_transform);
+  pnh.param("command_source", p.command_source, p.command_source);
+  if (p.command_source != "topic" && p.command_source != "scene" && p.command_source != "tf")
+    throw InputError("", "~command_source", "must be topic, scene or tf, got '" + p.command_source + "'");
+  pnh.param("needle_base_frame", p.needle_base_frame, p.needle_base_frame);
+  pnh.param("allow_empty_frame", p.allow_empty_frame, p.allow_empty_frame);
+  pnh.param("wrench_frame", p.wrench_frame, p.wrench_frame);
+  if (p.wrench_frame != "base" && p.wrench_frame != "tissue")
+    throw InputError("", "~wrench_frame", "must be base or tissue, got '" + p.wrench_frame + "'");
+
+  CommandLimits& l = p.limits;
+  pnh.param("max_speed", l.max_speed, l.max_speed);
+  pnh.param("max_angular_speed", l.max_angular_speed, l.max_angular_speed);
+  pnh.param("max_angular_speed_inserted", l.max_angular_speed_inserted, l.max_angular_speed_inserted);
+  pnh.param("max_future", l.max_future, l.max_future);
+  pnh.param("command_timeout", l.command_timeout, l.command_timeout);
+  pnh.param("quaternion_tolerance", l.quaternion_tolerance, l.quaternion_tolerance);
+  pnh.param("workspace_margin", l.workspace_margin, l.workspace_margin);
+  pnh.param("command_latency", l.command_latency, l.command_latency);
+  l.validate();
+
+  pnh.param("as_fast_as_possible", p.as_fast_as_possible, p.as_fast_as_possible);
+  pnh.param("display_rate", p.display_rate, p.display_rate);
+  if (!(p.display_rate > 0) || !std::isfinite(p.display_rate)) throw InputError("", "~display_rate", "must be > 0");
+  pnh.param("display_range", p.display_range, p.display_range);
+  if (!(p.display_range >= 0) || !std::isfinite(p.display_range))
+    throw InputError("", "~display_range", "must be >= 0 (0: adaptive)");
+  pnh.param("display_range_min", p.display_range_min, p.display_range_min);
+  if (!(p.display_range_min > 0) || !std::isfinite(p.display_range_min))
+    throw InputError("", "~display_range_min", "must be > 0");
+  pnh.param("output_period", p.output_period, p.output_period);
+  if (!(p.output_period >= 0) || !(p.output_period <= 1.0)) throw InputError("", "~output_period", "must be in [0, 1] s");
+  pnh.param("blas_threads", p.blas_threads, p.blas_threads);
+  if (p.blas_threads < 1) throw InputError("", "~blas_threads", "must be >= 1");
+  pnh.param("predict_dt", p.predict_dt, p.predict_dt);
+  pnh.param("predict_sample_period", p.predict_sample_period, p.predict_sample_period);
+  pnh.param("predict_max_steps", p.predict_max_steps, p.predict_max_steps);
+  if (!(p.predict_dt > 0) || !std::isfinite(p.predict_dt)) throw InputError("", "~predict_dt", "must be > 0");
+  if (!(p.predict_sample_period > 0) || !std::isfinite(p.predict_sample_period))
+    throw InputError("", "~predict_sample_period", "must be > 0");
+  if (p.predict_max_steps < 1) throw InputError("", "~predict_max_steps", "must be >= 1");
+  pnh.param("insert_speed", p.insert_speed, p.insert_speed);
+  if (!(p.insert_speed > 0) || !(p.insert_speed <= l.max_speed))
+    throw InputError("", "~insert_speed", "must be in (0, ~max_speed]");
+  pnh.param("deadline_warn_fraction", p.deadline_warn_fraction, p.deadline_warn_fraction);
+  if (!(p.deadline_warn_fraction >= 0) || !(p.deadline_warn_fraction <= 1))
+    throw InputError("", "~deadline_warn_fraction", "must be in [0, 1]");
+  return p;
+}
+
+}  // namespace needle_sim

@@ -1,0 +1,41 @@
+#pragma once
+// The node's private parameters, read once at start-up into one struct; every default and
+// range is listed in doc/ros_api.md (the single source of them). Throws InputError naming
+// the parameter ("~name") for a value out of range.
+#include <ros/ros.h>
+
+#include <array>
+#include <string>
+#include <vector>
+
+#include "needle_sim/command/command_guard.hpp"
+
+namespace needle_sim {
+
+struct NodeParameters {
+  std::string scene_file;
+  std::vector<std::string> overrides;  // ~set: key.path=value, as `needle_sim run --set`
+  std::string tissue_frame = "tissue";
+  std::string parent_frame;             // "": the tissue frame is a root of the tf tree
+  std::array<double, 7> tissue_pose{{0, 0, 0, 0, 0, 0, 1}};  // parent -> tissue: x y z qx qy qz qw
+  bool publish_tissue_transform = true;  // with a parent frame: broadcast it (static)
+  std::string command_source = "topic";  // topic | scene | tf
+  std::string needle_base_frame;         // tf commands, one needle: the base frame to follow
+  bool allow_empty_frame = false;        // an empty frame_id means ~tissue_frame
+  std::string wrench_frame = "base";     // base (<needle>_base) | tissue
+  CommandLimits limits;                  // workspace box filled from the scene
+  bool as_fast_as_possible = false;
+  double display_rate = 30;
+  double display_range = 0;   // [m] top of the colour scale; 0: adapts slowly to the motion
+  double display_range_min = 1e-6;  // [m] the adaptive range never goes below this
+  double output_period = 0.001;
+  int blas_threads = 1;
+  double predict_dt = 0.01, predict_sample_period = 0.05;
+  int predict_max_steps = 100000;
+  double insert_speed = 0.005;          // [m/s] default speed of ~insert goals
+  double deadline_warn_fraction = 0.05;  // diagnostics WARN above this share of late steps / skipped ticks
+};
+
+NodeParameters readParameters(const ros::NodeHandle& pnh);
+
+}  // namespace needle_sim

@@ -1,0 +1,129 @@
+// SimulatorRos services: ~reset, ~set_target, ~predict (on its own callback thread: the
+// prediction runs on a copy of the simulation, the live run goes on meanwhile).
+#include <needle_sim/SimStatus.h>
+
+#include <cmath>
+#include <cstdio>
+#include <limits>
+
+#include "conversions.hpp"
+#include "display_outputs.hpp"
+#include "insert_action.hpp"
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/ros/simulator_ros.hpp"
+#include "needle_sim/sim/prediction.hpp"
+#include "node_parameters.hpp"
+
+namespace needle_sim {
+
+int SimulatorRos::needleIndex(const std::string& name) const {
+  if (name.empty()) return scene_.needles.empty() ? -1 : 0;
+  for (int i = 0; i < static_cast<int>(scene_.needles.size()); ++i)
+    if (scene_.needles[i].name == name) return i;
+  return -1;
+}
+
+bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  std::lock_guard<std::mutex> lk(sim_mutex_);
+  try {
+    load();
+  } catch (const std::exception& e) {
+    res.success = false;
+    res.message = e.what();
+    return true;
+  }
+  if (action_) action_->abort("the simulation was reset");
+  // The command guard's and the schedule's counters are kept: they count over the node's life.
+  res.success = true;
+  res.message = "reset to the initial state of scene '" + scene_.name + "'";
+  return true;
+}
+
+bool SimulatorRos::onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::SetTarget::Response& res) {
+  std::lock_guard<std::mutex> lk(sim_mutex_);
+  try {
+    primary_target_ = sim_->setTarget(req.name, fromPoint(req.point));
+    names_ = std::make_shared<const ObservableNames>(observableNames(*sim_));
+  } catch (const std::exception& e) {
+    res.success = false;
+    res.message = e.what();
+    ROS_WARN("needle_sim: set_target rejected: %s", e.what());
+    return true;
+  }
+  res.success = true;
+  res.message = "target '" + req.name + "' set";
+  return true;
+}
+
+bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_sim::PredictInsertion::Response& res) {
+  const auto w0 = ros::WallTime::now();
+  res.success = false;
+  res.final_target_tip_distance = std::numeric_limits<double>::quiet_NaN();
+  auto refuse = [&](const std::string& why) {
+    res.message = why;
+    ROS_WARN("needle_sim: predict refused: %s", why.c_str());
+    return true;
+  };
+  const int needle = needleIndex(req.needle);
+  if (needle < 0) return refuse("needle: no needle named '" + req.needle + "'");
+  if (!std::isfinite(req.dt) || req.dt < 0) return refuse("dt: must be finite and >= 0");
+  if (!std::isfinite(req.sample_period) || req.sample_period < 0) return refuse("sample_period: must be finite and >= 0");
+  InsertionPlan plan;
+  plan.needle = needle;
+  plan.duration = req.duration;
+  plan.dt = req.dt > 0 ? req.dt : params_->predict_dt;
+  plan.sample_period = req.sample_period > 0 ? req.sample_period : params_->predict_sample_period;
+  Rigid to_tissue;
+  if (!toTissue(req.trajectory.header.frame_id, req.trajectory.header.stamp, "~predict", to_tissue))
+    return refuse("trajectory: frame '" + req.trajectory.header.frame_id + "' has no transform to '" +
+                  params_->tissue_frame + "'");
+  std::unique_ptr<Simulation> snapshot;
+  int target = -1;
+  {
+    // The state of now, copied under the lock (about a millisecond); the prediction runs
+    // without it, so the live simulation goes on meanwhile.
+    std::lock_guard<std::mutex> lk(sim_mutex_);
+    if (!failure_.empty()) return refuse("the simulation has failed (" + failure_ + "); call ~reset first");
+    target = req.target.empty() ? (sim_->numTargets() > 0 ? std::min(primary_target_, sim_->numTargets() - 1) : -1)
+                                : sim_->findTarget(req.target);
+    if (!req.target.empty() && target < 0) return refuse("target: no target named '" + req.target + "'");
+    const BaseTrajectory& traj = sim_->needle(needle).trajectory();
+    const bool inserted = sim_->interaction() && sim_->interaction()->activePoints(needle) > 0;
+    const std::string why =
+        guard_->checkPlan(needle, toWaypoints(req.trajectory, to_tissue), traj.pose(sim_->time()), sim_->scene().dt,
+                          inserted, plan.waypoints);
+    if (!why.empty()) return refuse("trajectory: " + why);
+    snapshot = std::make_unique<Simulation>(*sim_);
+  }
+  Prediction p;
+  try {
+    p = predictInsertion(*snapshot, plan, params_->predict_max_steps);
+  } catch (const InputError& e) {
+    return refuse(e.what());
+  } catch (const NumericalError& e) {
+    res.message = std::string("the predicted run failed: ") + e.what();
+    ROS_WARN("needle_sim: predict: %s", res.message.c_str());
+    return true;
+  }
+  for (const auto& s : p.samples) {
+    res.time.push_back(s.t);
+    res.tip_position.push_back(toPoint(s.tips[needle]));
+    res.base_force.push_back(toVector(s.base_forces[needle]));
+    if (target >= 0) {
+      res.target_position.push_back(toPoint(s.targets[target]));
+      res.target_tip_distance.push_back(s.tip_distances[target]);
+    }
+  }
+  if (target >= 0) res.final_target_tip_distance = res.target_tip_distance.back();
+  res.steps = p.steps;
+  res.max_dofs = p.max_dofs;
+  res.compute_time = (ros::WallTime::now() - w0).toSec();
+  res.success = true;
+  char buf[160];
+  std::snprintf(buf, sizeof buf, "predicted %.3g s in %d steps of %.3g s (%.3f s wall)", p.samples.back().t, p.steps,
+                plan.dt, res.compute_time);
+  res.message = buf;
+  return true;
+}
+
+}  // namespace needle_sim

@@ -1,0 +1,32 @@
+#pragma once
+// What one step hands to the output thread: numbers only (no strings, no messages), copied
+// under the simulation's lock in a few microseconds; the output thread builds and sends the
+// per-step messages (status, wrenches, targets) from it. Names come from the shared
+// ObservableNames, rebuilt when the scene or its targets change.
+#include <ros/time.h>
+
+#include <array>
+#include <memory>
+#include <string>
+
+#include "needle_sim/command/command_guard.hpp"
+#include "needle_sim/sim/observables.hpp"
+#include "needle_sim/sim/realtime_schedule.hpp"
+
+namespace needle_sim {
+
+struct StepFrame {
+  ros::Time stamp;
+  std::shared_ptr<const ObservableNames> names;
+  std::string state;    // waiting | running | failed
+  std::string failure;  // empty unless failed
+  Observables obs;      // not filled after a failure: a failed state is never published
+  double step_ms = 0, step_ms_max = 0, publish_ms = 0, rtf = 0, display_range = 0;
+  RealtimeSchedule::Counts deadlines;
+  std::array<uint64_t, kGuardRules> guard{};
+  uint64_t rejected = 0, clamped = 0;
+  int primary_target = 0;
+  bool send_target_point = false, send_target_state = false;  // subscribed
+};
+
+}  // namespace needle_sim

@@ -1,0 +1,369 @@
+// The command guard (the node's last check before the needle moves), without ROS: each rule
+// rejects or slows down what breaks it and counts it; the base trajectory it builds never
+// moves faster than the limits (sampled finely), after a pause, a future stamp, a non-unit
+// quaternion or a large turn too; plans are checked whole; the pose convention reads back.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <limits>
+
+#include "needle_sim/command/command_guard.hpp"
+#include "needle_sim/command/pose_convention.hpp"
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/observables.hpp"
+#include "needle_sim/sim/realtime_schedule.hpp"
+#include "needle_sim/sim/simulation.hpp"
+
+using namespace needle_sim;
+
+namespace {
+
+const BasePose kRest{Vec3(-0.035, 0.01, 0.01), Vec3::UnitX(), 0.0};
+const double kDt = 1e-3;
+
+CommandLimits limits() {
+  CommandLimits l;
+  l.max_speed = 0.05;
+  l.max_angular_speed = 1.0;
+  l.max_angular_speed_inserted = 0.1;
+  l.max_future = 0.01;
+  l.command_timeout = 0.5;
+  l.command_latency = 0.005;
+  l.workspace_min = Vec3(0, 0, 0);
+  l.workspace_max = Vec3(0.04, 0.02, 0.02);
+  return l;
+}
+
+CommandGuard guard() { return CommandGuard(limits(), {{kRest, 0.032}}); }
+
+PoseCommand at(const Vec3& p, double stamp, const Eigen::Quaterniond& q = Eigen::Quaterniond::Identity()) {
+  PoseCommand c;
+  c.position = p;
+  c.orientation = q;
+  c.stamp = stamp;
+  return c;
+}
+
+// Largest linear and angular speed of the trajectory over [t0, t1], by finite differences.
+struct Rates {
+  double linear = 0, angular = 0, axis = 0;
+};
+Rates sampledRates(const BaseTrajectory& traj, double t0, double t1) {
+  Rates r;
+  const double h = 1e-5;
+  BasePose prev = traj.pose(t0);
+  for (double t = t0 + h; t <= t1; t += h) {
+    const BasePose p = traj.pose(t);
+    r.linear = std::max(r.linear, (p.position - prev.position).norm() / h);
+    r.angular = std::max(r.angular, traj.orientation(p).angularDistance(traj.orientation(prev)) / h);
+    r.axis = std::max(r.axis, std::acos(std::clamp(p.direction.dot(prev.direction), -1.0, 1.0)) / h);
+    prev = p;
+  }
+  return r;
+}
+
+}  // namespace
+
+TEST(CommandGuard, RejectsNonFiniteNonUnitAndOutOfWorkspaceAndCountsEachRule) {
+  CommandGuard g = guard();
+  const double nan = std::nan(""), inf = std::numeric_limits<double>::infinity();
+  EXPECT_FALSE(g.admit(0, at(Vec3(nan, 0, 0), 0), 0).accepted);
+  EXPECT_FALSE(g.admit(0, at(Vec3(0, 0.01, inf), 0), 0).accepted);
+  EXPECT_FALSE(g.admit(0, at(kRest.position, 0, Eigen::Quaterniond(nan, 0, 0, 0)), 0).accepted);
+  EXPECT_EQ(g.count(GuardRule::NonFinite), 3u);
+  // Zero and (2, 2, 2, 2): rejected, not normalised into a turn.
+  EXPECT_FALSE(g.admit(0, at(kRest.position, 0, Eigen::Quaterniond(0, 0, 0, 0)), 0).accepted);
+  const Admission big = g.admit(0, at(kRest.position, 0, Eigen::Quaterniond(2, 2, 2, 2)), 0);
+  EXPECT_FALSE(big.accepted);
+  EXPECT_EQ(big.rule, GuardRule::Quaternion);
+  EXPECT_NE(big.reason.find("norm 4"), std::string::npos) << big.reason;
+  EXPECT_EQ(g.count(GuardRule::Quaternion), 2u);
+  // Within the tolerance (a float-rounded quaternion): accepted.
+  EXPECT_TRUE(g.admit(0, at(kRest.position, 0, Eigen::Quaterniond(1.0001, 0, 0, 0)), 0).accepted);
+  EXPECT_FALSE(g.admit(0, at(Vec3(1.0, 0.01, 0.01), 0.001), 0.001).accepted);
+  EXPECT_EQ(g.count(GuardRule::Workspace), 1u);
+  EXPECT_EQ(g.rejected(), 6u);
+  EXPECT_EQ(g.limited(), 0u);
+}
+
+TEST(CommandGuard, StampsFromTheFutureStaleOrOutOfOrderAreRejected) {
+  CommandGuard g = guard();
+  // 10 s ahead: rejected (clock skew), and the later, normal commands are taken on time.
+  const Admission future = g.admit(0, at(kRest.position + Vec3(1e-3, 0, 0), 11.0), 1.0);
+  EXPECT_FALSE(future.accepted);
+  EXPECT_EQ(future.rule, GuardRule::Future);
+  const Admission a = g.admit(0, at(kRest.position, 1.0), 1.0);
+  ASSERT_TRUE(a.accepted) << a.reason;
+  EXPECT_DOUBLE_EQ(a.at, 1.0 + 0.005);
+  // Within ~max_future: accepted.
+  EXPECT_TRUE(g.admit(0, at(kRest.position, 1.008), 1.0).accepted);
+  // Older than the last accepted one: out of order; the same stamp again is fine.
+  const Admission back = g.admit(0, at(kRest.position, 1.004), 1.009);
+  EXPECT_FALSE(back.accepted);
+  EXPECT_EQ(back.rule, GuardRule::OutOfOrder);
+  EXPECT_TRUE(g.admit(0, at(kRest.position, 1.008), 1.009).accepted);
+  // Older than ~command_timeout: stale.
+  EXPECT_EQ(g.admit(0, at(kRest.position, 1.2), 1.8).rule, GuardRule::Stale);
+  // Unstamped: taken as received now.
+  const Admission u = g.admit(0, at(kRest.position, std::nan("")), 2.0);
+  ASSERT_TRUE(u.accepted);
+  EXPECT_DOUBLE_EQ(u.at, 2.005);
+  EXPECT_EQ(g.count(GuardRule::Future), 1u);
+  EXPECT_EQ(g.count(GuardRule::OutOfOrder), 1u);
+  EXPECT_EQ(g.count(GuardRule::Stale), 1u);
+  // restart(): the stamp order starts again, the counters stay.
+  g.restart();
+  EXPECT_TRUE(g.admit(0, at(kRest.position, 0.0), 0.0).accepted);
+  EXPECT_EQ(g.rejected(), 3u);
+}
+
+TEST(CommandGuard, AJumpIsApproachedAtTheSpeedLimitAlsoAfterAPause) {
+  CommandGuard g = guard();
+  BaseTrajectory traj(kRest);
+  // A stream at the limit (0.05 m/s, 500 Hz) is followed exactly, on time.
+  double now = 0;
+  for (int k = 1; k <= 100; ++k) {
+    const double stamp = 0.002 * k;
+    now = stamp;
+    const Admission a = g.admit(0, at(kRest.position + Vec3(0.05 * stamp, 0, 0), stamp), now);
+    ASSERT_TRUE(a.accepted);
+    const Following f = g.follow(0, traj, a, now, kDt, false);
+    EXPECT_FALSE(f.limited) << k;
+    EXPECT_NEAR(f.reached_at, stamp + 0.005, 1e-12);
+  }
+  EXPECT_EQ(g.limited(), 0u);
+  // 2 s of silence, then a 20 mm jump: approached at the limit from where the base is
+  // (0.4 s), not in one step.
+  now = 2.2;
+  const Vec3 held = traj.pose(now).position;
+  const Admission jump = g.admit(0, at(held + Vec3(0.02, 0, 0), now), now);
+  ASSERT_TRUE(jump.accepted);
+  const Following f = g.follow(0, traj, jump, now, kDt, false);
+  EXPECT_TRUE(f.limited);
+  EXPECT_EQ(f.rule, GuardRule::LinearSpeed);
+  EXPECT_NEAR(f.reached_at, now + 0.4, 1e-9);
+  EXPECT_EQ(g.count(GuardRule::LinearSpeed), 1u);
+  const Rates r = sampledRates(traj, 0.0, 3.0);
+  EXPECT_LE(r.linear, 0.05 * (1 + 1e-6));
+  EXPECT_NEAR((traj.pose(3.0).position - held).norm(), 0.02, 1e-12);
+  // A later command supersedes the one not reached yet: it takes over from where the base
+  // is at its own time, still at the limit (no jump back).
+  const double t2 = now + 0.1;
+  const Admission back = g.admit(0, at(held, t2), t2);
+  g.follow(0, traj, back, t2, kDt, false);
+  EXPECT_LE(sampledRates(traj, 0.0, 3.0).linear, 0.05 * (1 + 1e-6));
+  EXPECT_NEAR((traj.pose(4.0).position - held).norm(), 0.0, 1e-12);
+}
+
+TEST(CommandGuard, TurnsAreLimitedAndMoreSoInsideTheTissue) {
+  CommandGuard g = guard();
+  BaseTrajectory traj(kRest);
+  // 120 degrees about (1,1,1) at once: 2.09 s at 1 rad/s.
+  const Eigen::Quaterniond turn(Eigen::AngleAxisd(2 * M_PI / 3, Vec3(1, 1, 1).normalized()));
+  const Admission a = g.admit(0, at(kRest.position, 0.0, turn), 0.0);
+  ASSERT_TRUE(a.accepted);
+  const Following f = g.follow(0, traj, a, 0.0, kDt, false);
+  EXPECT_TRUE(f.limited);
+  EXPECT_EQ(f.rule, GuardRule::AngularSpeed);
+  EXPECT_GT(f.reached_at, 2 * M_PI / 3 - 1e-6);
+  Rates r = sampledRates(traj, 0.0, f.reached_at + 0.1);
+  EXPECT_LE(r.angular, 1.0 * 1.002);
+  EXPECT_LT(traj.orientation(traj.pose(f.reached_at)).angularDistance(traj.orientation(a.pose)), 1e-9);
+
+  // Inside the tissue a 90 degree turn of the axis takes 15.7 s at 0.1 rad/s.
+  CommandGuard g2 = guard();
+  BaseTrajectory t2(kRest);
+  const Eigen::Quaterniond tilt(Eigen::AngleAxisd(M_PI / 2, Vec3::UnitZ()));
+  const Admission b = g2.admit(0, at(kRest.position, 0.0, tilt), 0.0);
+  const Following fb = g2.follow(0, t2, b, 0.0, kDt, true);
+  EXPECT_EQ(fb.rule, GuardRule::AngularInserted);
+  EXPECT_NEAR(fb.reached_at, M_PI / 2 / 0.1, 0.01);
+  r = sampledRates(t2, 0.0, fb.reached_at);
+  EXPECT_LE(r.axis, 0.1 * 1.002);
+  // A roll about the axis inside the tissue is held to the general limit only (steering
+  // spins the needle).
+  CommandGuard g3 = guard();
+  BaseTrajectory t3(kRest);
+  const Admission c = g3.admit(0, at(kRest.position, 0.0, Eigen::Quaterniond(Eigen::AngleAxisd(0.5, Vec3::UnitX()))), 0.0);
+  const Following fc = g3.follow(0, t3, c, 0.0, kDt, true);
+  EXPECT_NEAR(fc.reached_at, 0.5, 1e-3);
+}
+
+TEST(CommandGuard, RollIsUnwrappedNoFullTurnBetweenNearlyEqualPoses) {
+  CommandGuard g = guard();
+  // A roll stream crossing +-pi: each command's roll stays within pi of the previous one.
+  double prev = 0;
+  for (int k = 0; k <= 40; ++k) {
+    const double roll = 0.1 * k;  // up to 4 rad
+    Eigen::Quaterniond q(Eigen::AngleAxisd(roll, Vec3::UnitX()));
+    if (k % 2) q.coeffs() *= -1;  // the same rotation
+    const Admission a = g.admit(0, at(kRest.position, 0.01 * k, q), 0.01 * k);
+    ASSERT_TRUE(a.accepted);
+    EXPECT_NEAR(a.pose.roll, roll, 1e-9) << k;
+    EXPECT_LT(std::abs(a.pose.roll - prev), 0.1 + 1e-9);
+    prev = a.pose.roll;
+  }
+}
+
+TEST(CommandGuard, PlansAreCheckedWhole) {
+  CommandGuard g = guard();
+  PlanPoses out;
+  auto wp = [](double t, double x, const Eigen::Quaterniond& q = Eigen::Quaterniond::Identity()) {
+    return PlanWaypoint{t, Vec3(x, 0.01, 0.01), q};
+  };
+  // 1 cm in 1 s: fine.
+  EXPECT_EQ(g.checkPlan(0, {wp(0.5, -0.030), wp(1.0, -0.025)}, kRest, kDt, false, out), "");
+  ASSERT_EQ(out.size(), 2u);
+  EXPECT_NEAR(out[1].second.position.x(), -0.025, 1e-15);
+  // 1 cm in 0.1 s: refused, not changed.
+  std::string why = g.checkPlan(0, {wp(0.1, -0.025)}, kRest, kDt, false, out);
+  EXPECT_NE(why.find("waypoint 0: linear_speed"), std::string::npos) << why;
+  EXPECT_TRUE(out.empty());
+  why = g.checkPlan(0, {wp(0.5, -0.030), wp(0.4, -0.025)}, kRest, kDt, false, out);
+  EXPECT_NE(why.find("waypoint 1: time_from_start"), std::string::npos) << why;
+  why = g.checkPlan(0, {wp(1.0, -0.035, Eigen::Quaterniond(2, 2, 2, 2))}, kRest, kDt, false, out);
+  EXPECT_NE(why.find("quaternion_norm"), std::string::npos) << why;
+  why = g.checkPlan(0, {wp(0.1, -0.035, Eigen::Quaterniond(Eigen::AngleAxisd(1.0, Vec3::UnitZ())))}, kRest, kDt, false, out);
+  EXPECT_NE(why.find("angular_speed"), std::string::npos) << why;
+  // A turn of the axis at 0.5 rad/s: fine outside the tissue, refused with the tip inside
+  // (the rigid tip of a base at x = 0 lies in the box).
+  const Eigen::Quaterniond small(Eigen::AngleAxisd(0.5, Vec3::UnitZ()));
+  EXPECT_EQ(g.checkPlan(0, {wp(1.0, -0.035, small)}, kRest, kDt, false, out), "");
+  const BasePose in{Vec3(0.0, 0.01, 0.01), Vec3::UnitX(), 0.0};
+  why = g.checkPlan(0, {PlanWaypoint{1.0, in.position, small}}, in, kDt, false, out);
+  EXPECT_NE(why.find("angular_speed_inserted"), std::string::npos) << why;
+  EXPECT_EQ(g.count(GuardRule::Plan), 5u);
+  EXPECT_EQ(g.checkPlan(0, {}, kRest, kDt, false, out), "no waypoints");
+}
+
+TEST(CommandGuard, LimitsAreValidated) {
+  CommandLimits l = limits();
+  l.max_speed = 0;
+  EXPECT_THROW(l.validate(), InputError);
+  l = limits();
+  l.max_angular_speed_inserted = 2.0;  // above max_angular_speed
+  EXPECT_THROW(l.validate(), InputError);
+  l = limits();
+  l.quaternion_tolerance = std::nan("");
+  EXPECT_THROW(l.validate(), InputError);
+  CommandGuard g = guard();
+  l = limits();
+  l.max_speed = -1;
+  EXPECT_THROW(g.setLimits(l), InputError);
+  EXPECT_DOUBLE_EQ(g.limits().max_speed, 0.05);  // unchanged
+  l.max_speed = 0.01;
+  g.setLimits(l);
+  BaseTrajectory traj(kRest);
+  const Admission a = g.admit(0, at(kRest.position + Vec3(0.01, 0, 0), 0.0), 0.0);
+  EXPECT_NEAR(g.follow(0, traj, a, 0.0, kDt, false).reached_at, 1.0, 1e-9);  // 1 cm at 1 cm/s
+}
+
+TEST(PoseConvention, OrientationToAxisAndRoll) {
+  // x axis turned 30 degrees about z, then rolled 0.4 rad about the new axis.
+  const Eigen::Quaterniond q = Eigen::Quaterniond(Eigen::AngleAxisd(M_PI / 6, Vec3::UnitZ())) *
+                               Eigen::Quaterniond(Eigen::AngleAxisd(0.4, Vec3::UnitX()));
+  const BasePose p = basePoseFrom(kRest.position, q, kRest, 0.0);
+  EXPECT_NEAR((p.direction - Vec3(std::cos(M_PI / 6), std::sin(M_PI / 6), 0)).norm(), 0, 1e-12);
+  EXPECT_NEAR(p.roll, 0.4, 1e-12);
+  EXPECT_LT(orientationOf(p, kRest).angularDistance(q), 1e-12);
+  // The rest orientation (identity: x is the rest axis) is roll 0, axis unchanged.
+  const BasePose r = basePoseFrom(kRest.position, Eigen::Quaterniond::Identity(), kRest, 0.0);
+  EXPECT_NEAR((r.direction - Vec3::UnitX()).norm(), 0, 1e-15);
+  EXPECT_NEAR(r.roll, 0, 1e-15);
+}
+
+// The frames the node publishes for the needle (<needle>_tip, the path's poses) are in the
+// command poses' convention for any rest direction and roll: at rest each node's frame is
+// the scene's base orientation, and after the base is moved to a commanded pose the tip's
+// frame reads back as that pose's axis and roll.
+TEST(PoseConvention, NodeFramesFollowTheCommandConvention) {
+  const Vec3 dir(0.48, -0.6, -0.64);
+  const Scene sc = parseScene(R"(
+name: frame_test
+time: {dt: 0.001, duration: 0.01}
+solver: {mode: dynamic}
+needles:
+  - {name: n, length: 0.1, radius: 0.001, young: 2.0e11, poisson: 0.3, density: 7900.0, elements: 4,
+     base: {position: [0, 0, 0], direction: [0.48, -0.6, -0.64], roll: 0.3}}
+)", std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/frame_test.yaml");
+  Simulation sim(sc);
+  NeedleBody& nd = sim.needle(0);
+  const Eigen::Quaterniond rest = Eigen::Quaterniond::FromTwoVectors(Vec3::UnitX(), dir) * Eigen::AngleAxisd(0.3, Vec3::UnitX());
+  for (int k = 0; k < nd.beam().numNodes(); ++k) EXPECT_LT(nodeFrame(nd, k).angularDistance(rest), 1e-12) << k;
+  const BasePose at_rest = nd.trajectory().rest();
+  const BasePose p0 = basePoseFrom(at_rest.position, nodeFrame(nd, 4), at_rest, 0.0);
+  EXPECT_LT((p0.direction - dir).norm(), 1e-12);
+  EXPECT_NEAR(p0.roll, 0.3, 1e-12);
+
+  const BasePose moved{Vec3(0.01, 0.0, 0.0), Vec3(0.0, 1.0, 0.2).normalized(), 0.7};
+  nd.trajectory().add(1.0, moved);
+  nd.placeAt(1.0);
+  const BasePose p1 = basePoseFrom(moved.position, nodeFrame(nd, 4), at_rest, 0.0);
+  EXPECT_LT((p1.direction - moved.direction).norm(), 1e-12);
+  EXPECT_NEAR(p1.roll, 0.7, 1e-12);
+  // The observables carry the same frames.
+  const Observables o = observe(sim);
+  EXPECT_LT(o.needles[0].tip_frame.angularDistance(nodeFrame(nd, 4)), 1e-15);
+  EXPECT_LT(o.needles[0].base_frame.angularDistance(nodeFrame(nd, 0)), 1e-15);
+}
+
+// The holder's wrench: a static cantilever with a tip load passes the load to the holder.
+// In the base frame (x along the needle) a lateral tip force y reads +y on the holder, and
+// the moment about the base node is r x F.
+TEST(Observables, HolderWrenchOfALoadedCantilever) {
+  Scene sc = loadScene(std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/needle_cantilever.yaml",
+                       {"needle.base.direction=[0,0,1]", "needle.tip_force=[0.01,0,0]"});
+  Simulation sim(sc);
+  sim.step();
+  const Observables o = observe(sim);
+  ASSERT_EQ(o.needles.size(), 1u);
+  const NeedleObservation& n = o.needles[0];
+  // Tissue frame: the holder feels the tip force; the moment about the base is tip x F.
+  EXPECT_LT((n.holder_force - Vec3(0.01, 0, 0)).norm(), 1e-9);
+  EXPECT_LT((n.holder_moment - (n.tip - n.base).cross(Vec3(0.01, 0, 0))).norm(), 1e-9);
+  // Base frame: the needle axis (tissue z) is its x.
+  // (The static solve's residual leaves the wrench accurate to about 1e-9 N.)
+  EXPECT_LT((n.holder_force_base - n.base_frame.conjugate() * Vec3(0.01, 0, 0)).norm(), 1e-9);
+  EXPECT_NEAR(n.holder_force_base.x(), 0.0, 1e-9);  // no axial load
+  EXPECT_NEAR(n.holder_force_base.norm(), 0.01, 1e-9);
+}
+
+TEST(RealtimeSchedule, TellsLateStepsFromSkippedTicks) {
+  RealtimeSchedule s(0.001);
+  s.start(0.0);
+  // Ticks every millisecond; steps 1..10 on time (done within their period).
+  for (int k = 1; k <= 10; ++k) {
+    EXPECT_EQ(s.tick(0.001 * k), 1);
+    EXPECT_TRUE(s.takeStep());
+    s.stepDone(k, 0.001 * k + 0.0005);
+  }
+  auto c = s.counts(0.0105);
+  EXPECT_EQ(c.late, 0u);
+  EXPECT_EQ(c.skipped, 0u);
+  // Step 11 takes 3.5 ms: it is late; the tick at 13 ms finds step 12 not yet started (a
+  // skipped tick); 12 and 13 then run back to back, late too.
+  EXPECT_EQ(s.tick(0.011), 1);
+  EXPECT_TRUE(s.takeStep());
+  EXPECT_EQ(s.tick(0.012), 1);
+  EXPECT_EQ(s.tick(0.013), 1);  // step 12 still pending: a skipped tick
+  s.stepDone(11, 0.0145);       // due by 0.012: late
+  EXPECT_TRUE(s.takeStep());
+  s.stepDone(12, 0.0147);  // due by 0.013: late
+  EXPECT_TRUE(s.takeStep());
+  s.stepDone(13, 0.0149);  // due by 0.014: late
+  EXPECT_FALSE(s.takeStep());
+  c = s.counts(0.015);
+  EXPECT_EQ(c.late, 3u);
+  EXPECT_EQ(c.skipped, 1u);
+  EXPECT_EQ(c.longest_late_run, 3);
+  EXPECT_NEAR(c.late_fraction, 3.0 / 15, 1e-9);  // the window is the 15 ms since start
+  // A second later, the rates have forgotten them; the lifetime counts have not.
+  c = s.counts(1.1);
+  EXPECT_EQ(c.late_per_s, 0.0);
+  EXPECT_EQ(c.late, 3u);
+  // The clock going back asks for a restart; start() keeps the lifetime counts.
+  EXPECT_EQ(s.tick(0.005), -1);
+  s.start(0.0);
+  EXPECT_EQ(s.counts(0.0).late, 3u);
+}
