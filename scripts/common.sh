@@ -11,7 +11,7 @@ DEVEL="${NEEDLE_SIM_DEVEL_DIR:-$ROOT/devel}"
 
 # Everything the package needs from Debian (package.xml declares the same dependencies).
 PACKAGES=(
-  # build tools and ROS 1 from Debian (see DESIGN.md §5)
+  # build tools and ROS 1 from Debian (Debian's own ROS 1 packages: there is no /opt/ros)
   cmake g++ catkin ros-core-dev rosbash libroscpp-dev ros-std-msgs ros-geometry-msgs
   ros-sensor-msgs ros-nav-msgs ros-std-srvs ros-visualization-msgs ros-trajectory-msgs libtrajectory-msgs-dev
   libdiagnostic-updater-dev libtf2-ros-dev libactionlib-dev libactionlib-msgs-dev ros-actionlib-msgs

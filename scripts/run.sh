@@ -1,11 +1,15 @@
 #!/usr/bin/env bash
-# Install what is missing, build, and run the default scene (the paper's phantom, 8x4x4).
+# Install what is missing, build, and run a scene: by default the paper's adaptive phantom
+# insertion, with its plots (probe displacement, mesh DOFs and holder force against time) and
+# a ParaView series of the tissue and the needle.
 # Usage: bash scripts/run.sh [SCENE.yaml] [needle_sim run options...]
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 install_missing
 build
-SCENE="${1:-$ROOT/config/scenes/phantom_8x4x4.yaml}"
+SCENE="${1:-$ROOT/config/scenes/phantom_insertion_adaptive.yaml}"
 shift || true
 NAME="$(basename "$SCENE" .yaml)"
 OUT="$ROOT/results/$NAME"
-"$NEEDLE_SIM" run "$SCENE" --out "$OUT" "$@"
+"$NEEDLE_SIM" run "$SCENE" --out "$OUT" --vtu-every 100 "$@"
+/usr/bin/python3 "$ROOT/scripts/plot_run.py" "$OUT"
+echo "open in ParaView: paraview $OUT/tissue.pvd $OUT/needles.pvd"

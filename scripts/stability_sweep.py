@@ -30,8 +30,10 @@ import os
 import subprocess
 import sys
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SCENE = os.path.join(ROOT, "config", "scenes", "phantom_insertion_8x4x4.yaml")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import package_paths  # noqa: E402
+
+SCENE = package_paths.scene("phantom_insertion_8x4x4.yaml")
 TISSUE_E = 1.0e7
 DEPTH = 0.013  # commanded advance [m]; the tip starts 3 mm in front of the block
 HOLD = 0.3
@@ -170,8 +172,8 @@ def plot(table, path):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default=os.path.join(ROOT, "results", "stability"))
-    ap.add_argument("--tool", default=os.path.join(ROOT, "devel", "lib", "needle_sim", "needle_sim"))
+    ap.add_argument("--out", default=package_paths.results_dir("stability"))
+    ap.add_argument("--tool", default=package_paths.tool())
     ap.add_argument("--quick", action="store_true", help="only the extremes of each range (the CI subset)")
     ap.add_argument("--no-plot", action="store_true")
     ap.add_argument("--expect-pass", action="store_true", help="exit 1 unless every run passes")

@@ -28,16 +28,25 @@ void SimulatorRos::subscribeCommands() {
 }
 
 void SimulatorRos::warnRule(GuardRule rule, const std::string& source, const std::string& why) {
+  // At most one message per rule and second; the next one says how many it stood for.
   const ros::WallTime now = ros::WallTime::now();
+  unsigned long suppressed = 0;
   {
     std::lock_guard<std::mutex> lk(warn_mutex_);
-    ros::WallTime& last = last_warning_[static_cast<int>(rule)];
-    if (!last.isZero() && (now - last).toSec() < 1.0) return;
+    const int r = static_cast<int>(rule);
+    ros::WallTime& last = last_warning_[r];
+    if (!last.isZero() && (now - last).toSec() < 1.0) {
+      ++suppressed_[r];
+      return;
+    }
     last = now;
+    suppressed = suppressed_[r];
+    suppressed_[r] = 0;
   }
   const char* param = ruleParameter(rule);
-  ROS_WARN("needle_sim: %s %s by rule '%s'%s%s%s: %s", source.c_str(), ruleRejects(rule) ? "rejected" : "slowed down",
-           ruleName(rule), *param ? " (~" : "", param, *param ? ")" : "", why.c_str());
+  const std::string more = suppressed ? " (and " + std::to_string(suppressed) + " more by this rule since the last message)" : "";
+  ROS_WARN("needle_sim: %s %s by rule '%s'%s%s%s: %s%s", source.c_str(), ruleRejects(rule) ? "rejected" : "slowed down",
+           ruleName(rule), *param ? " (~" : "", param, *param ? ")" : "", why.c_str(), more.c_str());
 }
 
 bool SimulatorRos::toTissue(const std::string& frame, const ros::Time& stamp, const std::string& source, Rigid& out) {

@@ -100,6 +100,7 @@ needle_sim::SimStatus statusMessage(const StepFrame& f, const std::string& frame
   st.step_ms_max = f.step_ms_max;
   st.publish_ms = f.publish_ms;
   st.real_time_factor = f.rtf;
+  st.lag = f.lag;
   st.late_steps = f.deadlines.late;
   st.skipped_ticks = f.deadlines.skipped;
   st.late_rate = f.deadlines.late_per_s;

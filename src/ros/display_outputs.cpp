@@ -242,8 +242,8 @@ void DisplayOutputs::build(const Frame& f) {
     legend.pose = toPose(top, Eigen::Quaterniond::Identity());
     legend.scale.z = 0.05 * (mesh.boundsMax() - mesh.boundsMin()).norm();
     legend.color.r = legend.color.g = legend.color.b = legend.color.a = 1.f;
-    char text[120];
-    std::snprintf(text, sizeof text, "|u|: blue 0 .. red %.3g mm (max now %.3g mm)", 1e3 * range, 1e3 * umax);
+    char text[200];
+    std::snprintf(text, sizeof text, "|u| blue 0 .. red %.2g mm (now %.2g mm); cubes: error", 1e3 * range, 1e3 * umax);
     legend.text = text;
     legend_pub_.publish(legend);
   }
@@ -264,11 +264,11 @@ void DisplayOutputs::build(const Frame& f) {
       m.pose.orientation.w = 1;
       for (int e = 0; e < mesh.numElements(); ++e) {
         if (d.level[e] != L) continue;
-        if (m.points.empty()) {  // cube size: the element's rest extent (shrunk to see through)
-          m.scale.x = 0.6 * d.extent[e].x(), m.scale.y = 0.6 * d.extent[e].y(), m.scale.z = 0.6 * d.extent[e].z();
+        if (m.points.empty()) {  // cube size: the element's rest extent, shrunk so the needle shows through
+          m.scale.x = 0.35 * d.extent[e].x(), m.scale.y = 0.35 * d.extent[e].y(), m.scale.z = 0.35 * d.extent[e].z();
         }
         m.points.push_back(toPoint(d.centroid[e]));
-        m.colors.push_back(colour(d.eta_max > 0 ? d.element_eta[e] / d.eta_max : 0.0, 0.5f));
+        m.colors.push_back(colour(d.eta_max > 0 ? d.element_eta[e] / d.eta_max : 0.0, 0.3f));
       }
       if (!m.points.empty()) arr.markers.push_back(m);
     }

@@ -94,7 +94,7 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
     // Checked now (rejected at once) and again by the stepping thread when it takes it.
     PlanPoses poses;
     const bool inserted = sim.interaction() && sim.interaction()->activePoints(needle) > 0;
-    const std::string why = node_.guard_->checkPlan(needle, plan.waypoints, from, sim.scene().dt, inserted, poses);
+    const std::string why = node_.guard_->checkPlan(needle, plan.waypoints, from, sim.dt(), inserted, poses);
     if (!why.empty()) return reject("the motion breaks a limit: " + why);
     a.duration = w.time;
     std::lock_guard<std::mutex> lk(mutex_);
@@ -124,14 +124,22 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
 }
 
 void InsertAction::onCancel(Server::GoalHandle gh) {
+  std::lock_guard<std::mutex> sim_lock(node_.sim_mutex_);  // (the order of onGoal: actionlib, sim, this)
   std::lock_guard<std::mutex> lk(mutex_);
   if (!active_ || active_->gh.getGoalID().id != gh.getGoalID().id) return;
   node_.holdNeedle(active_->needle);  // the needle holds where it is
-  needle_sim::InsertNeedleResult r;
-  r.message = "preempted: the needle holds";
-  r.final_distance = r.error_bound = r.inserted = std::numeric_limits<double>::quiet_NaN();
+  const needle_sim::InsertNeedleResult r = result(*active_, node_.obs_, "preempted: the needle holds");
   active_->gh.setCanceled(r, r.message);
   active_.reset();
+}
+
+void InsertAction::superseded(int needle, const std::string& by) {
+  std::lock_guard<std::mutex> lk(mutex_);
+  if (!active_ || active_->needle != needle) return;
+  const needle_sim::InsertNeedleResult r = result(*active_, node_.obs_, "aborted: " + by + " took over the needle");
+  auto h = active_->gh;
+  active_.reset();
+  node_.out_->post([h, r]() mutable { h.setAborted(r, r.message); });
 }
 
 void InsertAction::update(const Observables& o) {
@@ -141,7 +149,9 @@ void InsertAction::update(const Observables& o) {
   if (a.target >= static_cast<int>(o.targets.size())) return;  // (a reset removed it: failed() ends the goal)
   const NeedleObservation& n = o.needles[a.needle];
   const Vec3 target = a.target >= 0 ? o.targets[a.target].position : a.point;
-  if (o.time >= a.end - 1e-9) {
+  // Done when the motion is (its plan may have been slowed down by new limits since).
+  const double end = std::max(a.end, node_.sim_->needle(a.needle).trajectory().lastTime());
+  if (o.time >= end - 1e-9) {
     needle_sim::InsertNeedleResult r = result(a, o, "inserted");
     auto h = a.gh;
     active_.reset();

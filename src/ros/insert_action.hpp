@@ -28,6 +28,8 @@ class InsertAction {
   void update(const Observables& o);
   // Ends the goal under way (a numerical failure, a reset).
   void abort(const std::string& why);
+  // Another command took over needle n (stepping thread): the goal on it is aborted.
+  void superseded(int needle, const std::string& by);
   void shutdown();
 
  private:

@@ -25,6 +25,11 @@ void LimitsReconfigure::onChange(needle_sim::LimitsConfig& c, uint32_t) {
     guard_.setLimits(l);
   } catch (const InputError& e) {
     ROS_ERROR("needle_sim: reconfigure refused, the limits stay as they were: %s", e.what());
+    {
+      std::lock_guard<std::mutex> lk(refusal_mutex_);
+      last_refusal_ = e.what();
+    }
+    ++refusals_;
     c.max_speed = old.max_speed;
     c.max_angular_speed = old.max_angular_speed;
     c.max_angular_speed_inserted = old.max_angular_speed_inserted;
@@ -35,10 +40,19 @@ void LimitsReconfigure::onChange(needle_sim::LimitsConfig& c, uint32_t) {
     c.display_rate = display_rate_;
     return;
   }
+  {
+    std::lock_guard<std::mutex> lk(refusal_mutex_);
+    last_refusal_.clear();
+  }
   display_rate_ = c.display_rate;
   set_display_rate_(c.display_rate);
   ROS_INFO("needle_sim: limits now max_speed %g m/s, max_angular_speed %g rad/s (%g inserted), workspace_margin %g m",
            l.max_speed, l.max_angular_speed, l.max_angular_speed_inserted, l.workspace_margin);
+}
+
+std::string LimitsReconfigure::lastRefusal() const {
+  std::lock_guard<std::mutex> lk(refusal_mutex_);
+  return last_refusal_;
 }
 
 }  // namespace needle_sim

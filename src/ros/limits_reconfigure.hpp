@@ -6,7 +6,10 @@
 #include <dynamic_reconfigure/server.h>
 #include <needle_sim/LimitsConfig.h>
 
+#include <atomic>
 #include <functional>
+#include <mutex>
+#include <string>
 
 #include "needle_sim/command/command_guard.hpp"
 
@@ -15,12 +18,18 @@ namespace needle_sim {
 class LimitsReconfigure {
  public:
   LimitsReconfigure(ros::NodeHandle& pnh, CommandGuard& guard, std::function<void(double)> set_display_rate);
+  // Why the last change was refused ("" if it was taken), and how many were refused.
+  std::string lastRefusal() const;
+  unsigned long refusals() const { return refusals_; }
 
  private:
   void onChange(needle_sim::LimitsConfig& c, uint32_t level);
   CommandGuard& guard_;
   std::function<void(double)> set_display_rate_;
   double display_rate_ = 30;
+  mutable std::mutex refusal_mutex_;
+  std::string last_refusal_;
+  std::atomic<unsigned long> refusals_{0};
   boost::recursive_mutex mutex_;
   dynamic_reconfigure::Server<needle_sim::LimitsConfig> server_;
 };

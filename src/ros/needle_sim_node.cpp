@@ -2,11 +2,24 @@
 //   rosrun needle_sim needle_sim_node _scene:=$(rospack find needle_sim)/config/scenes/phantom_insertion_8x4x4.yaml
 #include <ros/ros.h>
 
+#include <cstdio>
+#include <string>
+
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/ros/simulator_ros.hpp"
 
 int main(int argc, char** argv) {
+  for (int i = 1; i < argc; ++i)
+    if (std::string(argv[i]) == "--help" || std::string(argv[i]) == "-h") {
+      std::printf(
+          "needle_sim_node: the needle insertion simulator as a ROS node.\n"
+          "  rosrun needle_sim needle_sim_node _scene:=SCENE.yaml [_command_source:=topic|scene|tf] [_param:=value ...]\n"
+          "  roslaunch needle_sim sim.launch [scene:=...] [rviz:=true]\n"
+          "Topics, services, the ~insert action and every parameter with its default: doc/ros_api.md\n"
+          "(installed: $(rospack find needle_sim)/doc/ros_api.md).\n");
+      return 0;
+    }
   needle_sim::limitOpenMpThreads(argv);
   ros::init(argc, argv, "needle_sim");
   ros::NodeHandle nh, pnh("~");

@@ -27,7 +27,7 @@ struct NodeParameters {
   bool as_fast_as_possible = false;
   double display_rate = 30;
   double display_range = 0;   // [m] top of the colour scale; 0: adapts slowly to the motion
-  double display_range_min = 1e-6;  // [m] the adaptive range never goes below this
+  double display_range_min = 1e-7;  // [m] the adaptive range never goes below this
   double output_period = 0.001;
   int blas_threads = 1;
   double predict_dt = 0.01, predict_sample_period = 0.05;

@@ -75,8 +75,10 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
   plan.sample_period = req.sample_period > 0 ? req.sample_period : params_->predict_sample_period;
   Rigid to_tissue;
   if (!toTissue(req.trajectory.header.frame_id, req.trajectory.header.stamp, "~predict", to_tissue))
-    return refuse("trajectory: frame '" + req.trajectory.header.frame_id + "' has no transform to '" +
-                  params_->tissue_frame + "'");
+    return refuse(req.trajectory.header.frame_id.empty()
+                      ? std::string("trajectory: empty frame_id (rule empty_frame: set it, or ~allow_empty_frame)")
+                      : "trajectory: frame '" + req.trajectory.header.frame_id + "' has no transform to '" +
+                            params_->tissue_frame + "' (rule frame)");
   std::unique_ptr<Simulation> snapshot;
   int target = -1;
   {
@@ -90,7 +92,7 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
     const BaseTrajectory& traj = sim_->needle(needle).trajectory();
     const bool inserted = sim_->interaction() && sim_->interaction()->activePoints(needle) > 0;
     const std::string why =
-        guard_->checkPlan(needle, toWaypoints(req.trajectory, to_tissue), traj.pose(sim_->time()), sim_->scene().dt,
+        guard_->checkPlan(needle, toWaypoints(req.trajectory, to_tissue), traj.pose(sim_->time()), sim_->dt(),
                           inserted, plan.waypoints);
     if (!why.empty()) return refuse("trajectory: " + why);
     snapshot = std::make_unique<Simulation>(*sim_);

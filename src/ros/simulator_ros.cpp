@@ -1,6 +1,6 @@
-// SimulatorRos: set-up, pacing by the ROS clock, the stepping thread, per-step messages and
-// diagnostics. (Commands: command_input.cpp; services: services.cpp; display:
-// display_outputs.cpp; the action: insert_action.cpp.)
+// SimulatorRos: set-up, pacing by the ROS clock, the stepping thread. (Per-step messages and
+// diagnostics: step_outputs.cpp; commands: command_input.cpp; services: services.cpp;
+// display: display_outputs.cpp; the action: insert_action.cpp.)
 #include "needle_sim/ros/simulator_ros.hpp"
 
 #include <geometry_msgs/PointStamped.h>
@@ -42,10 +42,13 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
 
   out_ = std::make_unique<OutputQueue>(P.output_period);
   display_ = std::make_unique<DisplayOutputs>(pnh_, P, scene_, *out_);
-  status_pub_ = pnh_.advertise<needle_sim::SimStatus>("status", 10);
+  // Per-step messages queue deeply: after a stall the steps catch up back to back, and a
+  // status per step is what a client counts on.
+  status_pub_ = pnh_.advertise<needle_sim::SimStatus>("status", 1000);
   target_pub_ = pnh_.advertise<geometry_msgs::PointStamped>("target", 10);
   target_state_pub_ = pnh_.advertise<needle_sim::TargetState>("target/state", 50);
-  for (const auto& n : scene_.needles) wrench_pubs_.push_back(pnh_.advertise<geometry_msgs::WrenchStamped>(n.name + "/wrench", 10));
+  for (const auto& n : scene_.needles)
+    wrench_pubs_.push_back(pnh_.advertise<geometry_msgs::WrenchStamped>(n.name + "/wrench", 1000));
   updater_ = std::make_unique<diagnostic_updater::Updater>(nh_, pnh_);
   updater_->setHardwareID("needle_sim/" + scene_.name);
   updater_->add("simulation", this, &SimulatorRos::diagnose);
@@ -188,13 +191,21 @@ void SimulatorRos::applyCommands() {
     plans.swap(plans_);
     holds.swap(holds_);
   }
-  const double now = sim_->time(), dt = sim_->scene().dt;
+  const double now = sim_->time(), dt = sim_->dt();
   auto inserted = [&](int n) { return sim_->interaction() && sim_->interaction()->activePoints(n) > 0; };
   for (int n : holds) sim_->needle(n).trajectory().holdFrom(now);
+  // New limits (dynamic_reconfigure) apply to what is under way too, not only to new commands.
+  if (guard_->limitsVersion() != limits_version_ && params_->command_source != "scene") {
+    limits_version_ = guard_->limitsVersion();
+    for (int n = 0; n < sim_->numNeedles(); ++n)
+      if (guard_->enforce(n, sim_->needle(n).trajectory(), now, inserted(n)))
+        ROS_INFO("needle_sim: %s: the motion under way slowed down to the new limits", names_->needles[n].c_str());
+  }
   for (size_t i = 0; i < cmds.size(); ++i) {
     const auto& [n, a] = cmds[i];
     // A later command of the same needle for the same instant supersedes this one.
     if (i + 1 < cmds.size() && cmds[i + 1].first == n && cmds[i + 1].second.at == a.at) continue;
+    if (action_) action_->superseded(n, "a pose command");
     const Following f = guard_->follow(n, sim_->needle(n).trajectory(), a, now, dt, inserted(n));
     if (f.limited)
       warnRule(f.rule, names_->needles[n] + " command",
@@ -208,6 +219,7 @@ void SimulatorRos::applyCommands() {
     if (!why.empty()) {
       warnRule(GuardRule::Plan, p.source, why);
     } else {
+      if (action_ && !p.done) action_->superseded(p.needle, p.source);
       traj.holdFrom(now);
       traj.replaceFrom(now, dt, poses);
       guard_->planTaken(p.needle, poses.back().second);
@@ -249,105 +261,6 @@ void SimulatorRos::stepOnce() {
   const auto p0 = ros::WallTime::now();
   publishStep(ms);
   publish_ms_ = (ros::WallTime::now() - p0).toSec() * 1e3;
-}
-
-void SimulatorRos::publishStep(double ms) {
-  const ros::WallTime wall = ros::WallTime::now();
-  rtf_window_.emplace_back(wall, sim_->time());
-  while (rtf_window_.size() > 2 && (wall - rtf_window_.front().first).toSec() > 1.0) rtf_window_.pop_front();
-  StepFrame f;
-  f.stamp = ros::Time::now();
-  f.names = names_;
-  f.failure = failure_;
-  f.state = !failure_.empty() ? "failed" : (!commanded_ && params_->command_source != "scene") ? "waiting" : "running";
-  f.step_ms = ms;
-  f.step_ms_max = step_ms_max_;
-  f.publish_ms = publish_ms_;
-  const double dw = (rtf_window_.back().first - rtf_window_.front().first).toSec();
-  f.rtf = dw > 0 ? (rtf_window_.back().second - rtf_window_.front().second) / dw : 0.0;
-  {
-    std::lock_guard<std::mutex> lk(queue_mutex_);
-    f.deadlines = schedule_.counts(origin_.isZero() ? 0.0 : (f.stamp - origin_).toSec());
-  }
-  f.guard = guard_->counts();
-  f.rejected = guard_->rejected();
-  f.clamped = guard_->limited();
-  f.display_range = display_->range();
-  if (failure_.empty()) {  // never publish a state that failed: the status alone
-    observe(*sim_, obs_);
-    f.obs = obs_;
-    f.primary_target = std::min(primary_target_, sim_->numTargets() - 1);
-    f.send_target_point = sim_->numTargets() > 0 && target_pub_.getNumSubscribers() > 0;
-    f.send_target_state = sim_->numTargets() > 0 && target_state_pub_.getNumSubscribers() > 0;
-    if (action_) action_->update(obs_);
-  } else {
-    f.obs.step = sim_->stepIndex();
-    f.obs.time = sim_->time();
-    f.obs.dofs = sim_->numDofs();
-    if (action_) action_->abort("numerical failure: " + failure_);
-  }
-  out_->post([this, f = std::move(f)] { sendStep(f); });
-  if (!failure_.empty()) return;
-  if ((wall - last_display_).toSec() >= 1.0 / display_->rate()) {
-    last_display_ = wall;
-    display_->publish(*sim_, names_, primary_target_);
-  }
-}
-
-void SimulatorRos::sendStep(const StepFrame& f) {
-  status_pub_.publish(statusMessage(f, params_->tissue_frame));
-  if (!f.failure.empty()) return;
-  for (size_t i = 0; i < f.obs.needles.size(); ++i)
-    wrench_pubs_[i].publish(wrenchMessage(f, static_cast<int>(i), params_->wrench_frame == "base", params_->tissue_frame));
-  if (f.send_target_point) {
-    geometry_msgs::PointStamped ps;
-    ps.header.stamp = f.stamp;
-    ps.header.frame_id = params_->tissue_frame;
-    ps.point = toPoint(f.obs.targets[f.primary_target].position);
-    target_pub_.publish(ps);
-  }
-  if (f.send_target_state)
-    for (auto& m : targetStates(f, params_->tissue_frame)) target_state_pub_.publish(m);
-}
-
-void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
-  std::lock_guard<std::mutex> lk(sim_mutex_);
-  const auto counts = guard_->counts();
-  const uint64_t rej = guard_->rejected(), lim = guard_->limited();
-  RealtimeSchedule::Counts d;
-  {
-    std::lock_guard<std::mutex> q(queue_mutex_);
-    d = schedule_.counts(origin_.isZero() ? 0.0 : (ros::Time::now() - origin_).toSec());
-  }
-  const double warn = params_->deadline_warn_fraction;
-  if (!failure_.empty())
-    stat.summary(diagnostic_msgs::DiagnosticStatus::ERROR, "numerical failure: " + failure_);
-  else if (rej > diag_rejected_ || lim > diag_limited_)
-    stat.summary(diagnostic_msgs::DiagnosticStatus::WARN, "commands rejected or slowed down in the last second");
-  else if (d.late_fraction > warn || d.skipped_fraction > warn)
-    stat.summaryf(diagnostic_msgs::DiagnosticStatus::WARN,
-                  "not keeping real time: %.1f %% of the last second's steps late, %.1f %% ticks skipped (above "
-                  "~deadline_warn_fraction = %.1f %%)",
-                  100 * d.late_fraction, 100 * d.skipped_fraction, 100 * warn);
-  else
-    stat.summary(diagnostic_msgs::DiagnosticStatus::OK, "running");
-  diag_rejected_ = rej;
-  diag_limited_ = lim;
-  stat.add("scene", scene_.name);
-  stat.add("step", sim_->stepIndex());
-  stat.add("sim_time", sim_->time());
-  stat.add("dofs", sim_->numDofs());
-  stat.add("step_ms_max", step_ms_max_);
-  stat.add("late_steps", d.late);
-  stat.add("skipped_ticks", d.skipped);
-  stat.add("late_steps_per_s", d.late_per_s);
-  stat.add("skipped_ticks_per_s", d.skipped_per_s);
-  stat.add("longest_late_run", d.longest_late_run);
-  stat.add("rejected_commands", rej);
-  stat.add("clamped_commands", lim);
-  for (int r = 0; r < kGuardRules; ++r) stat.add(std::string("guard/") + ruleName(static_cast<GuardRule>(r)), counts[r]);
-  stat.add("output_thread_ms_total", out_->busyMs());
-  stat.add("output_messages_dropped", out_->dropped());
 }
 
 }  // namespace needle_sim

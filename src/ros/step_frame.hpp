@@ -21,7 +21,7 @@ struct StepFrame {
   std::string state;    // waiting | running | failed
   std::string failure;  // empty unless failed
   Observables obs;      // not filled after a failure: a failed state is never published
-  double step_ms = 0, step_ms_max = 0, publish_ms = 0, rtf = 0, display_range = 0;
+  double step_ms = 0, step_ms_max = 0, publish_ms = 0, rtf = 0, display_range = 0, lag = 0;
   RealtimeSchedule::Counts deadlines;
   std::array<uint64_t, kGuardRules> guard{};
   uint64_t rejected = 0, clamped = 0;

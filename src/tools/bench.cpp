@@ -9,6 +9,7 @@
 #include <regex>
 
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/core/stopwatch.hpp"
 #include "needle_sim/io/run_recorder.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/simulation.hpp"
@@ -40,9 +41,9 @@ Timing timeScene(const Scene& scene, int warmup, int steps) {
   std::vector<double> total, forces, assemble, factor, solve;
   long iterations = 0;
   for (int k = 0; k < warmup + steps; ++k) {
-    const auto t0 = std::chrono::steady_clock::now();
+    const auto t0 = steadyNow();
     const StepStats s = sim.step();
-    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    const double ms = msSince(t0);
     std::vector<Vec3> p;
     for (int i = 0; i < sim.numProbes(); ++i) p.push_back(sim.probeDisplacement(i));
     t.probes.push_back(p);
@@ -152,11 +153,11 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
   std::vector<double> dofs;
   double sum_total = 0, sum_adapt = 0;
   int passes = 0, changes = 0;
-  const auto w0 = std::chrono::steady_clock::now();
+  const auto w0 = steadyNow();
   for (long k = 0; k < steps; ++k) {
-    const auto t0 = std::chrono::steady_clock::now();
+    const auto t0 = steadyNow();
     const StepStats s = sim.step();
-    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    const double ms = msSince(t0);
     total.push_back(ms);
     dofs.push_back(sim.numDofs());
     sum_total += ms;
@@ -169,7 +170,7 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
       if (s.mesh_changed) rebuild.push_back(s.rebuild_ms);
     }
   }
-  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
+  const double wall = std::chrono::duration<double>(steadyNow() - w0).count();
   const Percentiles pt = percentiles(total), pd = percentiles(dofs), pe = percentiles(est), pm = percentiles(mark),
                     pr = percentiles(rebuild);
   std::printf("needle_sim bench: %s, %ld steps (times in ms)\n", o.scene.c_str(), steps);

@@ -5,7 +5,7 @@
 #include <vector>
 
 struct BenchOptions {
-  std::string scene = NEEDLE_SIM_SHARE_DIR "/config/scenes/phantom_8x4x4.yaml";
+  std::string scene = "phantom_8x4x4.yaml";  // resolved by resolveScene
   std::vector<std::string> cells{"8x4x4", "16x8x8", "32x16x16"};
   int steps = 30;
   int warmup = 3;

@@ -1,6 +1,7 @@
 // needle_sim: the headless command-line driver of the simulator.
 //
-// Sample runs:
+// Reference: doc/cli.md. Sample runs:
+//   needle_sim run phantom_insertion_adaptive.yaml --out results/adaptive --vtu-every 100
 //   needle_sim run config/scenes/phantom_8x4x4.yaml --out results/phantom_8x4x4
 //   needle_sim run config/scenes/phantom_8x4x4.yaml --out /tmp/r --set tissue.grid.cells=[16,8,8]
 //   needle_sim check config/scenes/cook_membrane.yaml --set tissue.grid.cells=[32,32,1]
@@ -21,9 +22,11 @@
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/io/run_recorder.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
 #include "bench.hpp"
 #include "predict.hpp"
+#include "share_dir.hpp"
 #include "soak.hpp"
 
 using namespace needle_sim;
@@ -80,17 +83,22 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   const auto p = percentiles(rec->stepTimes());
   std::printf("needle_sim: %ld steps in %.3f s (step median %.3f ms, p95 %.3f ms, max %.3f ms)\n", n, wall,
               p.median, p.p95, p.max);
-  for (int i = 0; i < sim->numProbes(); ++i) {
-    const Vec3 u = sim->probeDisplacement(i);
-    std::printf("  probe %-6s u = (% .6e, % .6e, % .6e) m\n", sim->probeName(i).c_str(), u[0], u[1], u[2]);
+  const Observables o = observe(*sim);
+  const ObservableNames names = observableNames(*sim);
+  for (size_t i = 0; i < o.probe_displacement.size(); ++i) {
+    const Vec3& u = o.probe_displacement[i];
+    std::printf("  probe %-6s u = (% .6e, % .6e, % .6e) m\n", names.probes[i].c_str(), u[0], u[1], u[2]);
   }
-  for (int i = 0; i < sim->numNeedles(); ++i) {
-    const auto& nd = sim->needle(i);
-    const Vec3 t = nd.tipPosition(), f = nd.baseForce(), m = nd.baseMoment();
-    std::printf("  needle %-6s tip = (% .6e, % .6e, % .6e) m, base force = (% .3e, % .3e, % .3e) N, moment = (% .3e, % .3e, % .3e) N m\n",
-                nd.name().c_str(), t[0], t[1], t[2], f[0], f[1], f[2], m[0], m[1], m[2]);
+  for (size_t i = 0; i < o.needles.size(); ++i) {
+    const NeedleObservation& n = o.needles[i];
+    std::printf("  needle %-6s tip = (% .6e, % .6e, % .6e) m, force on the holder (base frame) = (% .3e, % .3e, % .3e) N, %s\n",
+                names.needles[i].c_str(), n.tip[0], n.tip[1], n.tip[2], n.holder_force_base[0], n.holder_force_base[1],
+                n.holder_force_base[2], toString(n.state));
   }
   std::printf("results: %s\n         %s\n", rec->summaryPath().c_str(), rec->timeseriesPath().c_str());
+  if (options.vtu_every > 0)
+    std::printf("ParaView: %s/tissue.pvd, %s/needles.pvd (every %d steps)\n", out_dir.c_str(), out_dir.c_str(),
+                options.vtu_every);
   return 0;
 }
 
@@ -124,7 +132,7 @@ std::vector<std::string> withoutRosArgs(int argc, char** argv) {
 int main(int argc, char** argv) {
   needle_sim::limitOpenMpThreads(argv);
   flushDenormalsToZero();
-  CLI::App app{"needle_sim: real-time, error-controlled FE simulation of needle insertion (headless driver)"};
+  CLI::App app{"needle_sim: real-time, error-controlled FE simulation of needle insertion (headless driver)", "needle_sim"};
   app.require_subcommand(1);
   int blas_threads = 1;
   app.add_option("--blas-threads", blas_threads,
@@ -137,7 +145,8 @@ int main(int argc, char** argv) {
   std::vector<std::string> sets;
   bool quiet = false;
   RunRecorder::Options rec_opts;
-  auto* run = app.add_subcommand("run", "run a scene and write DIR/summary.json and DIR/timeseries.csv");
+  app.footer("Scenes named without a folder are looked up in the package's config/scenes. Reference: doc/cli.md.");
+  auto* run = app.add_subcommand("run", "run a scene headless: summary.json, timeseries.csv, optional VTU series");
   run->add_option("scene", scene_path, "scene file (YAML)")->required();
   run->add_option("--out,-o", out_dir, "output directory")->required();
   run->add_option("--set", sets, "override a scene value: key.path=value (repeatable)");
@@ -146,14 +155,16 @@ int main(int argc, char** argv) {
   run->add_flag("--error-estimate", rec_opts.error_estimate,
                 "SPR error estimate of the tissue every step (eta_global, eta_max, eta_relative columns)");
   run->add_flag("--vtu", rec_opts.vtu, "also write DIR/tissue.vtu: the final mesh with displacement, von Mises stress, eta");
+  run->add_option("--vtu-every", rec_opts.vtu_every,
+                  "a ParaView series every N steps: DIR/vtu/, DIR/tissue.pvd, DIR/needles.pvd (0: none)")
+      ->check(CLI::NonNegativeNumber);
 
-  auto* check = app.add_subcommand("check", "validate a scene (and build its mesh) without running it");
+  auto* check = app.add_subcommand("check", "validate a scene and build its mesh, without running it");
   check->add_option("scene", scene_path, "scene file (YAML)")->required();
   check->add_option("--set", sets, "override a scene value: key.path=value (repeatable)");
 
   BenchOptions bench_opts;
-  auto* bench = app.add_subcommand("bench", "time dynamic steps of a scene: the tissue at several grids (default: the "
-                                           "phantom), or a needles-only scene (median, split by phase)");
+  auto* bench = app.add_subcommand("bench", "time the steps of a scene at several grids, split by phase");
   bench->add_option("--scene", bench_opts.scene, "scene to time")->capture_default_str();
   bench->add_option("--cells", bench_opts.cells, "grids to time, e.g. 8x4x4 16x8x8")->capture_default_str();
   bench->add_option("--steps", bench_opts.steps, "timed steps per grid (0: every step of the scene)")->capture_default_str();
@@ -164,8 +175,7 @@ int main(int argc, char** argv) {
   bench->add_option("--json", bench_opts.json_out, "also write the results as JSON to this file");
 
   PredictOptions pred;
-  auto* predict = app.add_subcommand("predict", "predict a straight insertion plan from a state of a scene on a copy of "
-                                                "the simulation (as the ROS predict service), timed");
+  auto* predict = app.add_subcommand("predict", "predict a straight insertion on a copy of a running scene, timed");
   predict->add_option("scene", pred.scene, "scene file (YAML)")->required();
   predict->add_option("--set", pred.sets, "override a scene value (repeatable)");
   predict->add_option("--needle", pred.needle, "needle that follows the plan (default: the first)");
@@ -182,8 +192,7 @@ int main(int argc, char** argv) {
   predict->add_option("--json", pred.json_out, "also write the results as JSON to this file");
 
   SoakOptions soak_opts;
-  auto* soak = app.add_subcommand("soak", "long run with a scripted back-and-forth insertion: RSS, step time and "
-                                          "energy per window, stops on NaN/divergence");
+  auto* soak = app.add_subcommand("soak", "long back-and-forth insertion: memory, step time, energy per window");
   soak->add_option("scene", soak_opts.scene, "scene file (YAML)")->required();
   soak->add_option("--set", soak_opts.sets, "override a scene value (repeatable)");
   soak->add_option("--steps", soak_opts.steps, "steps to run")->capture_default_str();
@@ -201,6 +210,10 @@ int main(int argc, char** argv) {
     auto args = withoutRosArgs(argc, argv);
     app.parse(args);
     setBlasThreads(blas_threads);
+    scene_path = resolveScene(scene_path);
+    bench_opts.scene = resolveScene(bench_opts.scene);
+    pred.scene = resolveScene(pred.scene);
+    soak_opts.scene = resolveScene(soak_opts.scene);
   } catch (const CLI::ParseError& e) {
     const int code = app.exit(e);
     return code == 0 ? 0 : kExitInput;

@@ -1,4 +1,4 @@
-// The adaptivity driver (paper §2.3, DESIGN.md §2-3): refining mid-simulation moves no
+// The adaptivity driver (paper §2.3, doc/method.md, doc/verification.md): refining mid-simulation moves no
 // material (probes exact, momentum exact, kinetic energy to interpolation accuracy),
 // refine-then-coarsen returns the original mesh and field, coarsening waits for its
 // hysteresis, the DOF budget holds, the boundary of a refined mesh is the domain's boundary,

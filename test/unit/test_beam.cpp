@@ -1,4 +1,4 @@
-// The needle: corotational Euler-Bernoulli beam and its driven base (DESIGN.md §2, §3).
+// The needle: corotational Euler-Bernoulli beam and its driven base (doc/method.md, doc/verification.md).
 #include <gtest/gtest.h>
 
 #include <limits>
@@ -7,7 +7,7 @@
 #include "needle_sim/needle/base_trajectory.hpp"
 #include "needle_sim/needle/corotational_beam.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
-#include "needle_sim/sim/needle_body.hpp"
+#include "needle_sim/needle/needle_body.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 using namespace needle_sim;
@@ -30,9 +30,9 @@ NeedleScene cantilever(int elements, const Vec3& dir = Vec3::UnitX()) {
   return n;
 }
 
-SolverScene staticSolver() {
-  SolverScene s;
-  s.mode = SolverScene::Mode::Static;
+SolverSettings staticSolver() {
+  SolverSettings s;
+  s.mode = SolverSettings::Mode::Static;
   s.static_tolerance = 1e-12;
   s.static_max_iterations = 200;
   return s;
@@ -240,9 +240,9 @@ TEST(BaseTrajectory, InterpolatesPositionDirectionAndRoll) {
 
 namespace {
 // Dynamic solver settings without damping.
-SolverScene undamped(double dt) {
-  SolverScene s;
-  s.mode = SolverScene::Mode::Dynamic;
+SolverSettings undamped(double dt) {
+  SolverSettings s;
+  s.mode = SolverSettings::Mode::Dynamic;
   (void)dt;
   return s;
 }
@@ -289,7 +289,7 @@ TEST(NeedleDynamics, FastSwingAndReturnLeavesNoDrift) {
   const Vec3 p0 = n.base_position;
   n.motion = {{0.0, p0, Vec3::UnitX(), 0}, {0.2, p0 + Vec3(0.05, 0, 0), Vec3::UnitY(), 1.0},
               {0.4, p0, Vec3::UnitX(), 0.0}};
-  SolverScene s = undamped(1e-3);
+  SolverSettings s = undamped(1e-3);
   s.rayleigh_mass = 20.0;
   NeedleBody body(n, s);
   double max_deflection = 0;

@@ -357,7 +357,8 @@ TEST(RealtimeSchedule, TellsLateStepsFromSkippedTicks) {
   EXPECT_EQ(c.late, 3u);
   EXPECT_EQ(c.skipped, 1u);
   EXPECT_EQ(c.longest_late_run, 3);
-  EXPECT_NEAR(c.late_fraction, 3.0 / 15, 1e-9);  // the window is the 15 ms since start
+  EXPECT_NEAR(c.late_fraction, 3.0 / 13, 1e-9);    // of the 13 steps done since the start
+  EXPECT_NEAR(c.skipped_fraction, 1.0 / 15, 1e-9);  // of the 15 ticks due
   // A second later, the rates have forgotten them; the lifetime counts have not.
   c = s.counts(1.1);
   EXPECT_EQ(c.late_per_s, 0.0);
@@ -366,4 +367,68 @@ TEST(RealtimeSchedule, TellsLateStepsFromSkippedTicks) {
   EXPECT_EQ(s.tick(0.005), -1);
   s.start(0.0);
   EXPECT_EQ(s.counts(0.0).late, 3u);
+}
+
+// Found by an outside-in trial: waypoints closer together than a step were given a step
+// each in the check (10x the speed limit got through); now each segment is checked over its
+// own duration.
+TEST(CommandGuard, APlanOfDenseWaypointsIsCheckedAtItsOwnPace) {
+  CommandGuard g = guard();
+  PlanPoses out;
+  std::vector<PlanWaypoint> dense;
+  for (int k = 1; k <= 200; ++k)
+    dense.push_back({1e-4 * k + 1e-3, Vec3(-0.035, 0.01 - 5e-5 * k, 0.01), Eigen::Quaterniond::Identity()});
+  const std::string why = g.checkPlan(0, dense, kRest, kDt, false, out);
+  EXPECT_NE(why.find("linear_speed: 0.5 m/s"), std::string::npos) << why;
+  // The same path at 0.04 m/s is fine.
+  for (int k = 0; k < 200; ++k) dense[k].time = 1e-3 + 1.25e-3 * (k + 1);
+  EXPECT_EQ(g.checkPlan(0, dense, kRest, kDt, false, out), "");
+  // A second waypoint inside the plan's first step would be merged into the first: refused.
+  EXPECT_NE(g.checkPlan(0, {{2e-4, kRest.position, Eigen::Quaterniond::Identity()},
+                            {6e-4, kRest.position, Eigen::Quaterniond::Identity()}},
+                        kRest, kDt, false, out)
+                .find("first step"),
+            std::string::npos);
+}
+
+// Found by an outside-in trial: a command that turns the needle while it enters the tissue
+// was limited by the general angular limit only (the needle was outside when it started).
+TEST(CommandGuard, TheInTissueTurnLimitAppliesWhereTheMotionEntersTheTissue) {
+  CommandGuard g = guard();
+  BaseTrajectory traj(kRest);
+  // From outside (tip at -3 mm) to 10 mm in, turning 15 degrees about z.
+  const Eigen::Quaterniond yaw(Eigen::AngleAxisd(M_PI / 12, Vec3::UnitZ()));
+  const Admission a = g.admit(0, at(kRest.position + Vec3(0.013, 0, 0), 0.0, yaw), 0.0);
+  ASSERT_TRUE(a.accepted);
+  const Following f = g.follow(0, traj, a, 0.0, kDt, false);
+  EXPECT_EQ(f.rule, GuardRule::AngularInserted);
+  const Rates r = sampledRates(traj, 0.0, f.reached_at);
+  EXPECT_LE(r.axis, 0.1 * 1.002);
+  // The same motion as a plan at the general limit: refused (the tip enters the tissue).
+  PlanPoses out;
+  const std::string why =
+      g.checkPlan(0, {{(M_PI / 12) / 0.9, kRest.position + Vec3(0.013, 0, 0), yaw}}, kRest, kDt, false, out);
+  EXPECT_NE(why.find("angular_speed_inserted"), std::string::npos) << why;
+}
+
+// Found by an outside-in trial: limits lowered at run time applied to new commands only.
+TEST(CommandGuard, LoweredLimitsSlowDownTheMotionUnderWay) {
+  CommandGuard g = guard();
+  BaseTrajectory traj(kRest);
+  PlanPoses out;
+  ASSERT_EQ(g.checkPlan(0, {{1.0, kRest.position + Vec3(-0.04, 0, 0), Eigen::Quaterniond::Identity()}}, kRest, kDt,
+                        false, out),
+            "");
+  traj.replaceFrom(0.0, kDt, out);  // 40 mm in 1 s: at 0.04 m/s
+  CommandLimits l = g.limits();
+  const long v = g.limitsVersion();
+  l.max_speed = 0.01;
+  g.setLimits(l);
+  EXPECT_EQ(g.limitsVersion(), v + 1);
+  EXPECT_TRUE(g.enforce(0, traj, 0.3, false));
+  const Rates r = sampledRates(traj, 0.3, 5.0);
+  EXPECT_LE(r.linear, 0.01 * (1 + 1e-6));
+  EXPECT_NEAR(traj.lastTime(), 0.3 + 0.028 / 0.01, 1e-9);  // the 28 mm left, at 10 mm/s
+  EXPECT_LT((traj.pose(10.0).position - (kRest.position + Vec3(-0.04, 0, 0))).norm(), 1e-12);  // still gets there
+  EXPECT_FALSE(g.enforce(0, traj, 0.3, false));  // within the limits now: unchanged
 }

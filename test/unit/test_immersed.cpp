@@ -1,4 +1,4 @@
-// Immersed organ geometry, targets and brain shift (DESIGN.md §2 "Immersed geometry", §4
+// Immersed organ geometry, targets and brain shift (doc/method.md "Immersed geometry" and "Scenes of the paper"
 // "DBS"): closed surfaces from OBJ/STL/OFF, the winding-number inside test on the demo brain
 // (which has non-manifold edges), grid volume = surface volume, a box given as a surface
 // behaves as the box, and the brain-shift pre-step (zero load, linearity, skull contact).

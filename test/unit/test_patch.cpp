@@ -1,4 +1,4 @@
-// Patch tests (DESIGN.md §3): on a mesh with distorted interior elements, boundary nodes
+// Patch tests (doc/verification.md): on a mesh with distorted interior elements, boundary nodes
 // prescribed to a linear field x = F X + c, the static solution reproduces the field at
 // every interior node to 1e-10 relative, for a small strain and for a finite rotation
 // combined with a stretch (the corotational element must pass both).
@@ -6,7 +6,9 @@
 
 #include <random>
 
-#include "needle_sim/sim/tissue_body.hpp"
+#include "fixtures.hpp"
+#include "needle_sim/scene/scene.hpp"
+#include "needle_sim/tissue/tissue_body.hpp"
 
 using namespace needle_sim;
 
@@ -24,25 +26,12 @@ HexMesh distortedBox(unsigned seed) {
   return mesh;
 }
 
-TissueScene patchScene() {
-  TissueScene t;
-  t.material = {1000.0, 0.3, 1.0};
-  // All six faces prescribed (the values are replaced by the linear field below).
-  for (int d = 0; d < 3; ++d)
-    for (double side : {0.0, 1.0}) {
-      DirichletCondition dc;
-      dc.region.box.min = Vec3::Constant(-0.01);
-      dc.region.box.max = Vec3::Constant(1.01);
-      dc.region.box.min[d] = side - 0.01;
-      dc.region.box.max[d] = side + 0.01;
-      t.dirichlet.push_back(dc);
-    }
-  return t;
-}
+// All six faces prescribed (the values are replaced by the linear field below).
+TissueParameters patchScene() { return needle_sim_test::clampedUnitCube(1000.0, 0.3, 1.0); }
 
 void runPatch(const Mat3& F, const Vec3& c, double tol) {
-  SolverScene solver;
-  solver.mode = SolverScene::Mode::Static;
+  SolverSettings solver;
+  solver.mode = SolverSettings::Mode::Static;
   solver.static_tolerance = 1e-13;
   solver.static_max_iterations = 200;
   solver.linear.method = LinearSolverSettings::Method::Direct;

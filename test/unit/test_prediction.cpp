@@ -96,7 +96,7 @@ TEST(SimulationCopy, SteppingTheCopyLeavesTheOriginalAlone) {
   const size_t keys = sim.needle(0).trajectory().size();
   {
     Simulation copy(sim);
-    copy.needle(0).trajectory().replaceFrom(copy.time(), copy.scene().dt, {{0.5, BasePose{tip, Vec3::UnitX(), 0}}});
+    copy.needle(0).trajectory().replaceFrom(copy.time(), copy.dt(), {{0.5, BasePose{tip, Vec3::UnitX(), 0}}});
     for (int k = 0; k < 300; ++k) copy.step();
     ASSERT_GT((copy.needle(0).tipPosition() - tip).norm(), 1e-3);
   }
@@ -136,7 +136,7 @@ TEST(Prediction, AtTheLiveStepItIsTheLiveRunOfThePlan) {
   ASSERT_EQ(p.samples.size(), 11u);  // t = 0, 0.1, ..., 1.0
   EXPECT_NEAR(p.samples.back().t, 1.0, 1e-9);
   // The same plan, live.
-  sim.needle(0).trajectory().replaceFrom(sim.time(), sim.scene().dt, plan.waypoints);
+  sim.needle(0).trajectory().replaceFrom(sim.time(), sim.dt(), plan.waypoints);
   for (int k = 0; k < 1000; ++k) {
     sim.step();
     if ((k + 1) % 100 == 0) {

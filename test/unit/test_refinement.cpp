@@ -1,13 +1,15 @@
-// Template refinement with hanging nodes (DESIGN.md §2-3): volumes preserved, 2:1 balance,
+// Template refinement with hanging nodes (doc/method.md, doc/verification.md): volumes preserved, 2:1 balance,
 // P a partition of unity, patch test exact with hanging nodes over several levels, SPR of a
 // linear field zero, refine-then-coarsen back to the original mesh.
 #include <gtest/gtest.h>
 
 #include <random>
 
+#include "fixtures.hpp"
+#include "needle_sim/scene/scene.hpp"
 #include "needle_sim/adapt/refinable_hex_mesh.hpp"
 #include "needle_sim/adapt/spr_estimator.hpp"
-#include "needle_sim/sim/tissue_body.hpp"
+#include "needle_sim/tissue/tissue_body.hpp"
 
 using namespace needle_sim;
 
@@ -43,29 +45,8 @@ RefinableHexMesh randomlyRefined(unsigned seed, int levels, bool distort) {
   return rm;
 }
 
-TissueScene boxScene() {
-  TissueScene t;
-  t.material = {1000.0, 0.3, 1.0};
-  for (int d = 0; d < 3; ++d)
-    for (double side : {0.0, 1.0}) {
-      DirichletCondition dc;
-      dc.region.box.min = Vec3::Constant(-0.01);
-      dc.region.box.max = Vec3::Constant(1.01);
-      dc.region.box.min[d] = side - 0.01;
-      dc.region.box.max[d] = side + 0.01;
-      t.dirichlet.push_back(dc);
-    }
-  return t;
-}
-
-SolverScene staticDirect() {
-  SolverScene s;
-  s.mode = SolverScene::Mode::Static;
-  s.static_tolerance = 1e-13;
-  s.static_max_iterations = 100;
-  s.linear.method = LinearSolverSettings::Method::Direct;
-  return s;
-}
+TissueParameters boxScene() { return needle_sim_test::clampedUnitCube(1000.0, 0.3, 1.0); }
+SolverSettings staticDirect() { return needle_sim_test::staticDirect(1e-13, 100); }
 
 }  // namespace
 

@@ -119,3 +119,31 @@ TEST(Scene, GridMemoryEstimateIsMonotoneAndSane) {
   EXPECT_GT(estimateSolverBytes({400, 200, 200}), 64e9);
   EXPECT_LT(estimateSolverBytes({8, 4, 4}), estimateSolverBytes({16, 8, 8}));
 }
+
+// Scenes that differ only in a grid size derive from one base (extends): the derived scene
+// is the base with its keys merged in, named after itself; --set applies on top.
+TEST(Scene, ExtendsIsTheBaseWithTheDerivedKeysMergedIn) {
+  const Scene a = loadScene(kSrc + "/config/scenes/phantom_insertion_16x8x8.yaml");
+  const Scene b = loadScene(kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml", {"tissue.grid.cells=[16,8,8]"});
+  EXPECT_EQ(a.name, "phantom_insertion_16x8x8");
+  EXPECT_EQ(a.tissue.cells, Vec3i(16, 8, 8));
+  EXPECT_EQ(a.tissue.cells, b.tissue.cells);
+  EXPECT_EQ(a.dt, b.dt);
+  EXPECT_EQ(a.duration, b.duration);
+  EXPECT_EQ(a.tissue.material.young, b.tissue.material.young);
+  EXPECT_EQ(a.tissue.dirichlet.size(), b.tissue.dirichlet.size());
+  ASSERT_EQ(a.probes.size(), b.probes.size());
+  for (size_t i = 0; i < a.probes.size(); ++i) EXPECT_EQ(a.probes[i].point, b.probes[i].point);
+  ASSERT_EQ(a.needles.size(), 1u);
+  EXPECT_EQ(a.needles[0].motion.size(), b.needles[0].motion.size());
+  ASSERT_TRUE(a.interaction && b.interaction);
+  EXPECT_EQ(a.interaction->cutting_force, b.interaction->cutting_force);
+  // The adaptive scene: the base plus its adaptivity section.
+  const Scene ad = loadScene(kSrc + "/config/scenes/phantom_insertion_adaptive.yaml");
+  ASSERT_TRUE(ad.adaptivity);
+  EXPECT_EQ(ad.adaptivity->theta, 0.3);
+  EXPECT_EQ(ad.tissue.cells, Vec3i(8, 4, 4));
+  // --set on a derived scene.
+  const Scene c = loadScene(kSrc + "/config/scenes/phantom_insertion_16x8x8.yaml", {"tissue.grid.cells=[4,2,2]"});
+  EXPECT_EQ(c.tissue.cells, Vec3i(4, 2, 2));
+}

@@ -1,42 +1,24 @@
-// SPR error estimate (DESIGN.md §3): zero for a linear field; on a manufactured smooth
+// SPR error estimate (doc/verification.md): zero for a linear field; on a manufactured smooth
 // solution the true energy error converges at rate 1 and the estimate's effectivity
-// eta / |e| tends to 1 (DESIGN: 1.70, 1.26, 1.08, 1.02 for n = 4, 8, 16, 32).
+// eta / |e| tends to 1 (reference, doc/verification.md: 1.70, 1.26, 1.08, 1.02 for n = 4, 8, 16, 32).
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <cstdio>
 
+#include "fixtures.hpp"
+#include "needle_sim/scene/scene.hpp"
 #include "needle_sim/adapt/spr_estimator.hpp"
-#include "needle_sim/sim/tissue_body.hpp"
+#include "needle_sim/tissue/tissue_body.hpp"
 
 using namespace needle_sim;
 
 namespace {
 
-TissueScene unitCube(double poisson) {
-  TissueScene t;
-  t.material = {1.0, poisson, 1.0};
-  for (int d = 0; d < 3; ++d)
-    for (double side : {0.0, 1.0}) {
-      DirichletCondition dc;
-      dc.region.box.min = Vec3::Constant(-0.01);
-      dc.region.box.max = Vec3::Constant(1.01);
-      dc.region.box.min[d] = side - 0.01;
-      dc.region.box.max[d] = side + 0.01;
-      t.dirichlet.push_back(dc);
-    }
-  return t;
-}
-
+TissueParameters unitCube(double poisson) { return needle_sim_test::clampedUnitCube(1.0, poisson, 1.0); }
 // Tolerance 1e-8: the residual's round-off floor is ~1e-10 here (displacements of 1e-6 on
 // positions of 1), far below the discretisation errors measured.
-SolverScene staticDirect() {
-  SolverScene s;
-  s.mode = SolverScene::Mode::Static;
-  s.static_tolerance = 1e-8;
-  s.linear.method = LinearSolverSettings::Method::Direct;
-  return s;
-}
+SolverSettings staticDirect() { return needle_sim_test::staticDirect(1e-8); }
 
 // u_i = A sin(pi x) sin(pi y) sin(pi z) for every component i.
 struct Manufactured {
@@ -88,7 +70,7 @@ struct Result {
 
 Result solveManufactured(int n) {
   const double nu = 0.3;
-  TissueScene t = unitCube(nu);
+  TissueParameters t = unitCube(nu);
   TissueBody body(HexMesh::box(Vec3::Zero(), Vec3::Ones(), Vec3i(n, n, n)), t, staticDirect());
   const Manufactured m{1e-6, t.material.lameLambda(), t.material.lameMu()};
   const HexMesh& mesh = body.mesh();
@@ -131,7 +113,7 @@ Result solveManufactured(int n) {
 }  // namespace
 
 TEST(SprEstimator, LinearFieldHasZeroEstimate) {
-  TissueScene t = unitCube(0.3);
+  TissueParameters t = unitCube(0.3);
   HexMesh mesh = HexMesh::box(Vec3::Zero(), Vec3::Ones(), Vec3i(3, 3, 3));
   TissueBody body(mesh, t, staticDirect());
   Mat3 A;
@@ -171,7 +153,7 @@ TEST(SprEstimator, ManufacturedSolutionRateAndEffectivity) {
 // when the reference is a solution of its own (SPR is linear in the stress field).
 TEST(SprEstimator, EstimateOfAChangeFromAReference) {
   const int n = 4;
-  TissueScene t = unitCube(0.3);
+  TissueParameters t = unitCube(0.3);
   TissueBody body(HexMesh::box(Vec3::Zero(), Vec3::Ones(), Vec3i(n, n, n)), t, staticDirect());
   const Manufactured m{1e-6, t.material.lameLambda(), t.material.lameMu()};
   const HexMesh& mesh = body.mesh();

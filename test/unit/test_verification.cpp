@@ -1,4 +1,4 @@
-// Verification against known answers (DESIGN.md §3): DOF counts of the paper's phantom
+// Verification against known answers (doc/verification.md): DOF counts of the paper's phantom
 // meshes, the hex8 cantilever, Cook's membrane, and a damped free oscillation settling on
 // the static solution. Scenes are the shipped files, so these tests also guard them.
 #include <gtest/gtest.h>
@@ -145,7 +145,7 @@ Scene unitCubeStatic(const Vec3i& cells, double poisson) {
   Scene s;
   s.dt = 1;
   s.duration = 1;
-  s.solver.mode = SolverScene::Mode::Static;
+  s.solver.mode = SolverSettings::Mode::Static;
   s.solver.static_tolerance = 1e-12;
   s.solver.linear.method = LinearSolverSettings::Method::Direct;
   s.tissue.geometry.box = {Vec3(0, 0, 0), Vec3(1, 1, 1)};

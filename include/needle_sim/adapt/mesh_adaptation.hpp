@@ -1,5 +1,5 @@
 #pragma once
-// One adaptation pass (paper §2.3, DESIGN.md §2): from the element error indicators of the
+// One adaptation pass (paper §2.3, doc/method.md): from the element error indicators of the
 // current mesh, mark (max or bulk rule), refine by the 1 -> 8 template within max_level and
 // the DOF budget, merge back children whose error has stayed small (hysteresis), and carry
 // nodal fields to the new mesh.

@@ -1,6 +1,6 @@
 #pragma once
 // A hexahedral mesh refined by the 1 -> 8 template (paper §2.3, Fig. "hexa template"),
-// nested, with hanging nodes and 2:1 balance across faces and edges (DESIGN.md §2).
+// nested, with hanging nodes and 2:1 balance across faces and edges (doc/method.md).
 //
 // Cells form a forest over the coarse mesh; the leaves are the active elements. New nodes
 // are shared through the edges and faces that create them (an edge midpoint is the same

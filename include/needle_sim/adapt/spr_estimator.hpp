@@ -1,5 +1,5 @@
 #pragma once
-// Zienkiewicz-Zhu superconvergent patch recovery (SPR) error estimate (DESIGN.md §2,
+// Zienkiewicz-Zhu superconvergent patch recovery (SPR) error estimate (doc/method.md,
 // paper §2.3).
 //
 //  1. Stresses at element centroids (the superconvergent point of a trilinear hex), from

@@ -15,6 +15,7 @@
 // rule its commands break. No ROS here: times are simulation seconds.
 #include <array>
 #include <atomic>
+#include <functional>
 #include <cstdint>
 #include <limits>
 #include <mutex>
@@ -99,11 +100,13 @@ using PlanPoses = std::vector<std::pair<double, BasePose>>;  // (time from start
 
 // Rates of the base motion from pose a to pose b over a unit of time: translation [m],
 // rotation and turn of the axis [rad], the rotations as the largest rate along the
-// interpolated path (BaseTrajectory's interpolation, sampled).
+// interpolated path (BaseTrajectory's interpolation, sampled); axis_turn_inside: the largest
+// turn rate where `inside` says the needle is in the tissue (at either end of a sample).
 struct SegmentMotion {
-  double distance = 0, rotation = 0, axis_turn = 0;
+  double distance = 0, rotation = 0, axis_turn = 0, axis_turn_inside = 0;
 };
-SegmentMotion segmentMotion(const BaseTrajectory& traj, const BasePose& a, const BasePose& b);
+SegmentMotion segmentMotion(const BaseTrajectory& traj, const BasePose& a, const BasePose& b,
+                            const std::function<bool(const BasePose&)>& inside = {});
 
 class CommandGuard {
  public:
@@ -122,13 +125,20 @@ class CommandGuard {
 
   // Applies an admitted command to the needle's base trajectory at a step boundary (now:
   // the simulation time at the start of the next step, dt its length). inserted: the needle
-  // is in the tissue (the axis-turn limit applies).
+  // is in the tissue now; the in-tissue turn limit applies then, and wherever along the
+  // motion the needle's rigid tip lies in the tissue's box.
   Following follow(int n, BaseTrajectory& traj, const Admission& a, double now, double dt, bool inserted);
+  // What was commanded after now, slowed down where it breaks the current limits (after a
+  // setLimits that lowered them): later keyframes move later. Returns whether it changed.
+  bool enforce(int n, BaseTrajectory& traj, double now, bool inserted);
+  // Incremented by every setLimits (the stepping thread re-checks the trajectories then).
+  long limitsVersion() const { return limits_version_.load(); }
 
   // Checks a plan that starts at `from` (the base pose when it starts); fills `out` with
-  // the waypoints as base poses, or returns why it is refused ("waypoint k: ..."). inserted:
-  // the needle is in the tissue now; a segment whose rigid tip lies in the tissue's box
-  // counts as inserted too. Counts GuardRule::Plan when refused.
+  // the waypoints as base poses, or returns why it is refused ("waypoint k: ..."). Each
+  // segment is checked over its own duration (a waypoint at the plan's start must be where
+  // the base is). inserted: the needle is in the tissue now; wherever its rigid tip lies in
+  // the tissue's box counts as inserted too. Counts GuardRule::Plan when refused.
   std::string checkPlan(int n, const std::vector<PlanWaypoint>& waypoints, const BasePose& from, double dt,
                         bool inserted, PlanPoses& out);
 
@@ -150,7 +160,10 @@ class CommandGuard {
   // Checks position and orientation (finite, unit, workspace); converts to a base pose.
   bool checkPose(int n, const Vec3& p, const Eigen::Quaterniond& q, double roll_near, GuardRule& rule,
                  std::string& why, BasePose& pose) const;
-  bool tipInTissue(int n, const BasePose& p) const;
+  bool tipInTissue(int n, const BasePose& p, const CommandLimits& l) const;
+  // The time the motion from `from` to `to` needs under the limits, and the limit that sets it.
+  double needed(int n, const BaseTrajectory& traj, const BasePose& from, const BasePose& to, bool inserted,
+                const CommandLimits& l, GuardRule& rule) const;
 
   mutable std::mutex mutex_;  // limits_, last_stamp_, last_roll_
   CommandLimits limits_;
@@ -158,6 +171,7 @@ class CommandGuard {
   std::vector<double> last_stamp_;  // -inf: none yet
   std::vector<double> last_roll_;
   std::array<std::atomic<uint64_t>, kGuardRules> counts_{};
+  std::atomic<long> limits_version_{0};
 };
 
 }  // namespace needle_sim

@@ -1,6 +1,10 @@
 #pragma once
-// Needle-tissue interaction (paper §2.1 and §2.4): the three constraint kinds, their
-// creation and release as the needle is inserted and withdrawn, and the constraint solve.
+// Needle-tissue interaction (paper §2.1 and §2.4, doc/method.md "Needle-tissue
+// constraints"): the insertion state machine of each needle, the creation and release of
+// the three constraint kinds as the needle is inserted and withdrawn, and the constraint
+// solve. Its pieces: the needle's centre line (centre_line.hpp), needles in needles
+// (sheath.hpp), the rows and the Delassus operator (constraint_rows.hpp), the laws
+// (puncture/tip/shaft_constraint.hpp), projected Gauss-Seidel (projected_gauss_seidel.hpp).
 //
 // Per step, between the bodies' free motion and their commit:
 //   1. detect the tip meeting the surface (approaching needles), update every constraint's
@@ -23,11 +27,13 @@
 #include <string>
 #include <vector>
 
+#include "needle_sim/contact/constraint_rows.hpp"
 #include "needle_sim/contact/contact_constraint.hpp"
 #include "needle_sim/contact/interaction_settings.hpp"
 #include "needle_sim/contact/tissue_surface.hpp"
-#include "needle_sim/sim/needle_body.hpp"
-#include "needle_sim/sim/tissue_body.hpp"
+#include "needle_sim/needle/needle_body.hpp"
+#include "needle_sim/geometry/embedded_surface.hpp"
+#include "needle_sim/tissue/tissue_body.hpp"
 
 namespace needle_sim {
 
@@ -83,11 +89,6 @@ class NeedleTissueInteraction {
     bool has_path = false;
     bool sheathed = false;  // the tip is inside another needle's lumen (electrode in cannula)
   };
-  // Index of a needle whose lumen holds needle n's tip, or -1.
-  int sheathOf(int n) const;
-  // Needle centre-line point at arc length s: element, parameter, position, unit axis.
-  void needlePoint(int n, double s, int& e, double& xi, Vec3& p, Vec3& axis) const;
-  double closestArcLength(int n, const Vec3& p) const;
   bool locateCurrent(const Vec3& p, int hint, EmbeddedPoint& out) const;
   // Appends to `out` (not to constraints_, which the caller may be iterating).
   void layShaftPoints(int n, const EmbeddedPoint& upto, std::vector<std::unique_ptr<ContactConstraint>>& out);

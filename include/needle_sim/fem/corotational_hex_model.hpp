@@ -1,5 +1,5 @@
 #pragma once
-// Corotational trilinear hexahedra (DESIGN.md §2 "Tissue").
+// Corotational trilinear hexahedra (doc/method.md "Tissue").
 //
 // Per element a rotation R is extracted from the deformation gradient at the centroid;
 // the element then behaves linearly in its rotated frame:

@@ -1,6 +1,6 @@
 #pragma once
 // A regular hexahedral grid laid over a closed surface without conforming to it (the
-// finite-cell idea, DESIGN.md §2): cells inside or cut by the surface are kept, each with
+// finite-cell idea, doc/method.md): cells inside or cut by the surface are kept, each with
 // its inside volume fraction; stiffness and mass are weighted by it (CorotationalHexModel).
 // Cells with a tiny fraction keep `min_fraction` so that nodes which only touch a sliver of
 // tissue are not left without stiffness (the usual finite-cell alpha; it adds a stiffness

@@ -1,6 +1,6 @@
 #pragma once
 // Closed triangle surfaces: organ boundaries (immersed geometry), targets such as the
-// subthalamic nucleus, skull surfaces and clamp patches (DESIGN.md §2 "Immersed geometry").
+// subthalamic nucleus, skull surfaces and clamp patches (doc/method.md "Immersed geometry").
 //
 // Files are read with assimp (OBJ, STL, OFF, PLY, ...). Identical vertices are welded, and
 // the mesh must be closed with a consistent orientation: every edge a->b is matched by an

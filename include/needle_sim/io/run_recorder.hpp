@@ -14,13 +14,16 @@
 
 #include <memory>
 
+#include <functional>
+
 #include "needle_sim/adapt/spr_estimator.hpp"
+#include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 namespace needle_sim {
 
 struct Percentiles {
-  double median = 0, p95 = 0, max = 0, mean = 0;
+  double median = 0, p95 = 0, p99 = 0, p999 = 0, max = 0, mean = 0;
 };
 Percentiles percentiles(std::vector<double> v);
 
@@ -28,6 +31,8 @@ struct RecorderOptions {
   bool centerline = false;      // DIR/centerline.csv: every needle node at every step
   bool error_estimate = false;  // SPR estimate every step: eta_global, eta_max columns
   bool vtu = false;             // DIR/tissue.vtu at the end (stress, eta, level)
+  int vtu_every = 0;            // > 0: a ParaView series, DIR/vtu/*_NNNNNN.vt[up] every this many steps and
+                                // DIR/tissue.pvd, DIR/needles.pvd (and DIR/surface.pvd for an organ)
 };
 
 class RunRecorder {
@@ -45,6 +50,18 @@ class RunRecorder {
   std::string timeseriesPath() const { return dir_ + "/timeseries.csv"; }
 
  private:
+  struct Row {
+    const Observables& obs;
+    double ms;
+  };
+  using Writer = std::function<void(std::ostream&, const Row&)>;
+  struct Column {
+    std::string name;
+    Writer write;
+  };
+  void declareColumns();
+  void writeSeriesStep();  // one step of the ParaView series
+  void writeSeriesIndex() const;
   void writeSummary(const std::string& status, double wall_s, long fail_step, const std::string& message);
 
   const Simulation& sim_;
@@ -56,6 +73,9 @@ class RunRecorder {
   std::vector<double> adapt_ms_;
   std::string dir_;
   std::ofstream csv_, centerline_;
+  std::vector<Column> columns_;
+  std::vector<std::pair<double, std::string>> series_tissue_, series_needles_, series_surface_;
+  Observables obs_;
   std::vector<double> step_ms_, forces_ms_, assemble_ms_, factor_ms_, solve_ms_;
   long linear_iterations_ = 0, factorizations_ = 0, newton_iterations_ = 0;
   int max_linear_iterations_ = 0;
@@ -63,6 +83,7 @@ class RunRecorder {
   long constraint_iterations_ = 0;
   int max_constraint_points_ = 0;
   double max_constraint_residual_ = 0;
+  long constraint_unconverged_ = 0;  // steps whose constraint solve missed its tolerance
   std::vector<double> constraint_ms_;
   std::map<std::string, double> min_target_distance_;  // "target/needle" -> closest tip approach
 };

@@ -4,6 +4,7 @@
 // element the von Mises stress at the centroid, the refinement level and, when given, the
 // SPR error estimate eta.
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "needle_sim/core/types.hpp"
@@ -24,5 +25,9 @@ void writeVtu(const std::string& path, const HexMesh& mesh, const VecX& position
 // An organ surface (immersed geometry) as VTK polydata (.vtp): current vertex positions,
 // triangles, and the vertex displacement from the rest surface.
 void writeSurfaceVtp(const std::string& path, const TriangleMesh& rest, const std::vector<Vec3>& positions);
+// Needle centre lines as VTK polydata (.vtp): one polyline per needle, cell data `needle`.
+void writeCentreLinesVtp(const std::string& path, const std::vector<std::vector<Vec3>>& lines);
+// A ParaView collection (.pvd) of time steps: (time, file relative to the .pvd).
+void writePvd(const std::string& path, const std::vector<std::pair<double, std::string>>& steps);
 
 }  // namespace needle_sim

@@ -75,6 +75,13 @@ class BaseTrajectory {
     while (!keys_.empty() && keys_.back().t > t) keys_.pop_back();
     if (keys_.empty() || keys_.back().t < t) keys_.push_back({t, at});
   }
+  // The keyframes after time t, (time, pose).
+  std::vector<std::pair<double, BasePose>> keyframesAfter(double t) const {
+    std::vector<std::pair<double, BasePose>> out;
+    for (const auto& k : keys_)
+      if (k.t > t) out.emplace_back(k.t, k.pose);
+    return out;
+  }
   // Time of the last keyframe before t (-infinity when there is none).
   double lastKeyTimeBefore(double t) const {
     for (auto it = keys_.rbegin(); it != keys_.rend(); ++it)

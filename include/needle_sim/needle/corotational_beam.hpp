@@ -1,5 +1,5 @@
 #pragma once
-// Corotational 3D Euler-Bernoulli beam (DESIGN.md §2 "Needle").
+// Corotational 3D Euler-Bernoulli beam (doc/method.md "Needle").
 //
 // The needle is a chain of 2-node elements with 6 DOF per node: a position p_i and an
 // orientation q_i, the rotation carrying the node's rest material frame to its current

@@ -94,6 +94,7 @@ class SimulatorRos {
   void warnRule(GuardRule rule, const std::string& source, const std::string& why);
   std::mutex warn_mutex_;
   std::array<ros::WallTime, kGuardRules> last_warning_;  // per rule (throttled to 1 Hz), warn_mutex_
+  std::array<unsigned long, kGuardRules> suppressed_{};  // warnings held back since
   // --- services (services.cpp)
   bool onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   bool onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::SetTarget::Response& res);
@@ -115,6 +116,7 @@ class SimulatorRos {
   Observables obs_;
   std::string failure_;
   bool commanded_ = false;  // a command was taken since the start (state waiting before)
+  long limits_version_ = 0;  // of the limits the trajectories were last checked against
   int primary_target_ = 0;
   double step_ms_max_ = 0, publish_ms_ = 0;
   std::deque<std::pair<ros::WallTime, double>> rtf_window_;  // (wall, sim time)

@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "needle_sim/scene/resource_check.hpp"
 #include "needle_sim/scene/scene.hpp"
 
 namespace needle_sim {
@@ -20,8 +21,5 @@ Scene loadScene(const std::string& path, const std::vector<std::string>& overrid
 // Same from YAML text (file name used in messages only).
 Scene parseScene(const std::string& yaml_text, const std::string& file_label,
                  const std::vector<std::string>& overrides = {});
-
-// Memory the solver is estimated to need for a tissue of the given cells (bytes).
-double estimateSolverBytes(const Vec3i& cells);
 
 }  // namespace needle_sim

@@ -21,7 +21,7 @@
 
 #include "needle_sim/contact/needle_tissue_interaction.hpp"
 #include "needle_sim/core/types.hpp"
-#include "needle_sim/sim/tissue_body.hpp"
+#include "needle_sim/tissue/tissue_body.hpp"
 
 namespace needle_sim {
 

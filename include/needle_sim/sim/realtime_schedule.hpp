@@ -34,7 +34,8 @@ class RealtimeSchedule {
     uint64_t steps = 0, late = 0, skipped = 0;  // lifetime
     long longest_late_run = 0;                  // consecutive late steps, longest since start
     double late_per_s = 0, skipped_per_s = 0;   // over the last second of the clock
-    double late_fraction = 0, skipped_fraction = 0;  // of the steps due in the last second
+    double late_fraction = 0;     // of the steps done in the last second
+    double skipped_fraction = 0;  // of the ticks due in the last second
   };
   Counts counts(double now);
 
@@ -46,7 +47,7 @@ class RealtimeSchedule {
   long due_ = 0, pending_ = 0;
   uint64_t steps_ = 0, late_ = 0, skipped_ = 0;
   long late_run_ = 0, longest_late_run_ = 0;
-  std::deque<double> late_times_, skipped_times_;
+  std::deque<double> late_times_, skipped_times_, done_times_;
 };
 
 }  // namespace needle_sim

@@ -1,7 +1,10 @@
 #pragma once
-// A scene brought to life: builds the bodies from a validated Scene, embeds the probes,
-// and advances time step by step. The command-line tool and (later) the ROS node are
-// thin drivers around this class.
+// A scene brought to life: builds the bodies from a validated Scene, embeds the probes and
+// targets, runs the brain-shift pre-step, and advances time step by step (doc/method.md).
+// The scene is kept as it was given; what changes at run time (the time step of a
+// prediction, targets added by set_target) is the simulation's own state. The
+// command-line tool and the ROS node are thin drivers around this class; what they report
+// comes from observables.hpp.
 #include <memory>
 #include <string>
 #include <unordered_map>
@@ -13,10 +16,10 @@
 #include "needle_sim/fem/embedded_point.hpp"
 #include "needle_sim/geometry/embedded_surface.hpp"
 #include "needle_sim/geometry/immersed_grid.hpp"
-#include "needle_sim/sim/brain_shift.hpp"
+#include "needle_sim/brain/brain_shift.hpp"
 #include "needle_sim/scene/scene.hpp"
-#include "needle_sim/sim/needle_body.hpp"
-#include "needle_sim/sim/tissue_body.hpp"
+#include "needle_sim/needle/needle_body.hpp"
+#include "needle_sim/tissue/tissue_body.hpp"
 
 namespace needle_sim {
 
@@ -44,9 +47,11 @@ class Simulation {
   // NumericalError carrying the step index on NaN/Inf, divergence or solver failure.
   const StepStats& step();
 
+  // The scene as it was given (never changed by the simulation).
   const Scene& scene() const { return scene_; }
+  double dt() const { return dt_; }          // the time step now (setTimeStep)
   long stepIndex() const { return step_; }  // steps done
-  double time() const { return time_base_ + (step_ - step_base_) * scene_.dt; }
+  double time() const { return time_base_ + (step_ - step_base_) * dt_; }
   bool hasTissue() const { return tissue_ != nullptr; }
   const TissueBody& tissue() const { return *tissue_; }
   // The needle-tissue interaction, or nullptr when the scene has none.
@@ -85,8 +90,8 @@ class Simulation {
 
   // Targets: material points tracked from the planning (rest) position.
   int numTargets() const { return static_cast<int>(targets_.size()); }
-  const std::string& targetName(int i) const { return scene_.targets[i].name; }
-  Vec3 targetRest(int i) const { return targets_[i].rest; }
+  const std::string& targetName(int i) const { return targets_[i].name; }
+  Vec3 targetRest(int i) const { return targets_[i].planned; }
   Vec3 targetPosition(int i) const;
   // Position at step 0 (after the brain shift, if any).
   const Vec3& targetStart(int i) const { return target_start_[i]; }
@@ -119,17 +124,30 @@ class Simulation {
   void applySupport();
   void embedProbes();
   void embedTargets();
+  // The material point at rest position p; throws InputError(file, key) naming `what` when
+  // it lies outside the tissue (or the organ surface).
+  EmbeddedPoint embedPoint(const PointLocator& locator, const Vec3& p, const std::string& file,
+                           const std::string& key, const std::string& what) const;
   // Volume fractions of the active mesh's elements (immersed geometry), cached per cell.
   void setFractions(HexMesh& mesh, const std::vector<int>& cells);
   // Loads that outlive a mesh change: the brain shift's gravity and skull reactions.
   void applyPersistentLoads();
 
-  Scene scene_;
+  const Scene scene_;
+  // Run-time state.
+  struct Target {
+    std::string name;
+    Vec3 planned;         // the planning (rest) position
+    EmbeddedPoint point;  // embedded in the current mesh
+    std::string key;      // where it came from (scene key, or "set_target")
+    std::shared_ptr<const TriangleMesh> surface;  // a target given as a surface (centroid)
+  };
+  double dt_;
   std::unique_ptr<TissueBody> tissue_;
   std::vector<std::unique_ptr<NeedleBody>> needles_;
   std::unique_ptr<NeedleTissueInteraction> interaction_;
   std::vector<EmbeddedPoint> probes_;
-  std::vector<EmbeddedPoint> targets_;
+  std::vector<Target> targets_;
   std::vector<Vec3> target_start_;
   std::shared_ptr<const ImmersedGrid> immersed_;  // never changes: copies share it
   std::unordered_map<int, double> cell_fraction_;  // forest cell -> inside fraction (not floored)

@@ -68,19 +68,25 @@ void CommandLimits::validate(const std::string& prefix) const {
     throw InputError("", prefix + "max_angular_speed_inserted", "must not exceed ~max_angular_speed");
 }
 
-SegmentMotion segmentMotion(const BaseTrajectory& traj, const BasePose& a, const BasePose& b) {
+SegmentMotion segmentMotion(const BaseTrajectory& traj, const BasePose& a, const BasePose& b,
+                            const std::function<bool(const BasePose&)>& inside) {
   SegmentMotion m;
   m.distance = (b.position - a.position).norm();
   BasePose prev = a;
   Eigen::Quaterniond q_prev = traj.orientation(a);
+  bool prev_in = inside && inside(a);
   for (int i = 1; i <= kSamples; ++i) {
     const BasePose p = traj.interpolate(a, b, static_cast<double>(i) / kSamples);
     const Eigen::Quaterniond q = traj.orientation(p);
     m.rotation = std::max(m.rotation, kSamples * q.angularDistance(q_prev));
     const double c = std::clamp(p.direction.dot(prev.direction), -1.0, 1.0);
-    m.axis_turn = std::max(m.axis_turn, kSamples * std::acos(c));
+    const double turn = kSamples * std::acos(c);
+    m.axis_turn = std::max(m.axis_turn, turn);
+    const bool in = inside && inside(p);
+    if (in || prev_in) m.axis_turn_inside = std::max(m.axis_turn_inside, turn);
     prev = p;
     q_prev = q;
+    prev_in = in;
   }
   return m;
 }
@@ -96,6 +102,7 @@ void CommandGuard::setLimits(const CommandLimits& limits) {
   limits.validate();
   std::lock_guard<std::mutex> lk(mutex_);
   limits_ = limits;
+  ++limits_version_;
 }
 
 CommandLimits CommandGuard::limits() const {
@@ -190,6 +197,28 @@ Admission CommandGuard::admit(int n, const PoseCommand& c, double now) {
   return a;
 }
 
+bool CommandGuard::tipInTissue(int n, const BasePose& p, const CommandLimits& l) const {
+  const Vec3 tip = p.position + needles_[n].length * p.direction;
+  return ((tip - l.workspace_min).array() >= 0).all() && ((tip - l.workspace_max).array() <= 0).all();
+}
+
+double CommandGuard::needed(int n, const BaseTrajectory& traj, const BasePose& from, const BasePose& to,
+                            bool inserted, const CommandLimits& l, GuardRule& rule) const {
+  const SegmentMotion m =
+      segmentMotion(traj, from, to, [&](const BasePose& p) { return inserted || tipInTissue(n, p, l); });
+  double need = m.distance / l.max_speed;
+  rule = GuardRule::LinearSpeed;
+  if (m.rotation / l.max_angular_speed > need) {
+    need = m.rotation / l.max_angular_speed;
+    rule = GuardRule::AngularSpeed;
+  }
+  if (m.axis_turn_inside / l.max_angular_speed_inserted > need) {
+    need = m.axis_turn_inside / l.max_angular_speed_inserted;
+    rule = GuardRule::AngularInserted;
+  }
+  return need;
+}
+
 Following CommandGuard::follow(int n, BaseTrajectory& traj, const Admission& a, double now, double dt, bool inserted) {
   const CommandLimits lim = limits();
   // The command asks to be reached at a.at, never within the step under way. The base leaves
@@ -200,23 +229,13 @@ Following CommandGuard::follow(int n, BaseTrajectory& traj, const Admission& a, 
   const double ts = std::max(now, traj.lastKeyTimeBefore(te));
   traj.holdFrom(ts);
   const BasePose from = traj.pose(ts);
-  const SegmentMotion m = segmentMotion(traj, from, a.pose);
   Following f;
-  double need = m.distance / lim.max_speed;
-  f.rule = GuardRule::LinearSpeed;
-  if (m.rotation / lim.max_angular_speed > need) {
-    need = m.rotation / lim.max_angular_speed;
-    f.rule = GuardRule::AngularSpeed;
-  }
-  if (inserted && m.axis_turn / lim.max_angular_speed_inserted > need) {
-    need = m.axis_turn / lim.max_angular_speed_inserted;
-    f.rule = GuardRule::AngularInserted;
-  }
+  const double need = needed(n, traj, from, a.pose, inserted, lim, f.rule);
   double t = te;
   if (ts + need > te) {
-    // Too fast for a limit: reached later, at the limit's pace (relative slack so that a
-    // command exactly at the limit is not counted).
-    if (ts + need > te + 1e-9 * std::max(1.0, need)) {
+    // Too fast for a limit: reached later, at the limit's pace. Counted when it is more than
+    // a step late (a stream's jitter of arrival makes single steps a little short).
+    if (ts + need > te + dt) {
       f.limited = true;
       record(f.rule);
     }
@@ -229,9 +248,24 @@ Following CommandGuard::follow(int n, BaseTrajectory& traj, const Admission& a, 
   return f;
 }
 
-bool CommandGuard::tipInTissue(int n, const BasePose& p) const {
-  const Vec3 tip = p.position + needles_[n].length * p.direction;
-  return ((tip - limits_.workspace_min).array() >= 0).all() && ((tip - limits_.workspace_max).array() <= 0).all();
+bool CommandGuard::enforce(int n, BaseTrajectory& traj, double now, bool inserted) {
+  const CommandLimits lim = limits();
+  const auto keys = traj.keyframesAfter(now);
+  if (keys.empty()) return false;
+  // Re-timed from now: each segment takes at least what the limits need; the poses stay.
+  traj.holdFrom(now);
+  BasePose prev = traj.pose(now);
+  double t_prev = now, shift = 0;
+  for (const auto& [t, pose] : keys) {
+    GuardRule rule;
+    const double need = needed(n, traj, prev, pose, inserted, lim, rule);
+    const double t_new = std::max(t + shift, t_prev + need);
+    shift = t_new - t;
+    if (t_new > t_prev) traj.add(t_new, pose);
+    prev = pose;
+    t_prev = std::max(t_prev, t_new);
+  }
+  return shift > 1e-12;
 }
 
 std::string CommandGuard::checkPlan(int n, const std::vector<PlanWaypoint>& w, const BasePose& from, double dt,
@@ -249,31 +283,36 @@ std::string CommandGuard::checkPlan(int n, const std::vector<PlanWaypoint>& w, c
   }
   // Rates are measured with the trajectory's own interpolation (rest pose of this needle).
   const BaseTrajectory shape(needles_[n].rest);
+  auto inside = [&](const BasePose& p) { return inserted || tipInTissue(n, p, limits_); };
   BasePose prev = from;
   double t_prev = 0;
   for (size_t k = 0; k < w.size(); ++k) {
     const double t = w[k].time;
     if (!std::isfinite(t) || t < 0 || (k > 0 && t <= t_prev)) return refuse(k, "time_from_start not increasing");
+    if (k > 0 && t < dt)
+      return refuse(k, fmt("time_from_start %.4g s: within the plan's first step (%g s); only the first waypoint "
+                           "may be", t, dt));
     GuardRule rule;
     std::string why;
     BasePose p;
     if (!checkPose(n, w[k].position, w[k].orientation, prev.roll, rule, why, p))
       return refuse(k, std::string(ruleName(rule)) + ": " + why);
-    const double span = std::max(t - t_prev, dt);
-    const SegmentMotion m = segmentMotion(shape, prev, p);
-    // A plan is not silently changed: a segment too fast for a limit rejects it.
+    // Each segment over its own duration: waypoints closer together than a step are not
+    // given a step each (they would run faster than planned). The first segment, from where
+    // the base is, gets at least a step (the plan starts at the next step boundary).
+    const double span = k == 0 ? std::max(t, dt) : t - t_prev;
+    const SegmentMotion m = segmentMotion(shape, prev, p, inside);
     const double tol = 1 + 1e-9;
-    if (m.distance > limits_.max_speed * span * tol)
+    if (m.distance / span > limits_.max_speed * tol)
       return refuse(k, fmt("linear_speed: %.4g m/s, faster than ~max_speed = %g m/s", m.distance / span,
                            limits_.max_speed));
-    if (m.rotation > limits_.max_angular_speed * span * tol)
+    if (m.rotation / span > limits_.max_angular_speed * tol)
       return refuse(k, fmt("angular_speed: %.4g rad/s, faster than ~max_angular_speed = %g rad/s", m.rotation / span,
                            limits_.max_angular_speed));
-    const bool in = inserted || tipInTissue(n, prev) || tipInTissue(n, p);
-    if (in && m.axis_turn > limits_.max_angular_speed_inserted * span * tol)
+    if (m.axis_turn_inside / span > limits_.max_angular_speed_inserted * tol)
       return refuse(k, fmt("angular_speed_inserted: the axis turns at %.4g rad/s in the tissue, faster than "
                            "~max_angular_speed_inserted = %g rad/s",
-                           m.axis_turn / span, limits_.max_angular_speed_inserted));
+                           m.axis_turn_inside / span, limits_.max_angular_speed_inserted));
     out.emplace_back(t, p);
     prev = p;
     t_prev = t;

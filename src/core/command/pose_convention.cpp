@@ -2,7 +2,7 @@
 
 #include <cmath>
 
-#include "needle_sim/sim/needle_body.hpp"
+#include "needle_sim/needle/needle_body.hpp"
 
 namespace needle_sim {
 

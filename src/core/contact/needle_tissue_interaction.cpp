@@ -8,11 +8,14 @@
 #include <limits>
 #include <stdexcept>
 
+#include "needle_sim/contact/centre_line.hpp"
 #include "needle_sim/contact/projected_gauss_seidel.hpp"
 #include "needle_sim/contact/puncture_constraint.hpp"
 #include "needle_sim/contact/shaft_constraint.hpp"
+#include "needle_sim/contact/sheath.hpp"
 #include "needle_sim/contact/tip_constraint.hpp"
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/core/stopwatch.hpp"
 
 namespace needle_sim {
 
@@ -43,7 +46,8 @@ NeedleTissueInteraction::NeedleTissueInteraction(const InteractionSettings& s, T
                                                  std::vector<NeedleBody*> needles, const EmbeddedSurface* organ)
     : settings_(s), needles_(std::move(needles)), tracks_(needles_.size()) {
   bindTissue(tissue, organ);
-  for (size_t n = 0; n < needles_.size(); ++n) tracks_[n].sheathed = sheathOf(static_cast<int>(n)) >= 0;
+  for (size_t n = 0; n < needles_.size(); ++n)
+    tracks_[n].sheathed = sheathOf(needles_, static_cast<int>(n), 1e-3 * settings_.shaft_spacing) >= 0;
 }
 
 NeedleTissueInteraction::NeedleTissueInteraction(const NeedleTissueInteraction& o, TissueBody& tissue,
@@ -89,13 +93,8 @@ Vec3 NeedleTissueInteraction::forceOnNeedle(int n) const {
   Vec3 f = Vec3::Zero();
   for (const auto& c : constraints_) {
     if (c->needle != n) continue;
-    int e;
-    double xi;
-    Vec3 p, axis;
-    needlePoint(n, c->s, e, xi, p, axis);
-    const Vec3 fc = c->frame * c->lambda;
-    const double x2 = xi * xi, x3 = x2 * xi;
-    f += (2 * x3 - 3 * x2 + 1) * fc + (-2 * x3 + 3 * x2) * fc;  // translational Hermite weights of nodes e, e + 1
+    const HermiteWeights h = hermite(centreLinePoint(*needles_[n], c->s).xi);
+    f += (h.h00 + h.h01) * (c->frame * c->lambda);  // translational weights of the element's two nodes
   }
   return f;
 }
@@ -107,46 +106,6 @@ Vec3 NeedleTissueInteraction::forceOnTissue() const {
     for (int a = 0; a < 8; ++a) f -= c->tissue.weights[a] * fc;
   }
   return f;
-}
-
-// The needle centre line between two nodes is the cubic Hermite curve of the beam element
-// (end positions and end tangents from the node orientations), so shaft points between
-// nodes see the needle's curvature; its velocity involves the nodes' spins (hermiteRow).
-void NeedleTissueInteraction::needlePoint(int n, double s, int& e, double& xi, Vec3& p, Vec3& axis) const {
-  const NeedleBody& nd = *needles_[n];
-  const double L0 = nd.beam().elementLength();
-  const int ne = nd.beam().numElements();
-  e = std::clamp(static_cast<int>(std::floor(s / L0)), 0, ne - 1);
-  xi = std::clamp(s / L0 - e, 0.0, 1.0);
-  const Vec3& a = nd.state().p[e];
-  const Vec3& b = nd.state().p[e + 1];
-  const double l = (b - a).norm();
-  const Vec3 ta = nd.state().q[e] * nd.beam().restDirection();
-  const Vec3 tb = nd.state().q[e + 1] * nd.beam().restDirection();
-  const double x2 = xi * xi, x3 = x2 * xi;
-  p = (2 * x3 - 3 * x2 + 1) * a + (x3 - 2 * x2 + xi) * l * ta + (-2 * x3 + 3 * x2) * b + (x3 - x2) * l * tb;
-  const Vec3 dp = (6 * x2 - 6 * xi) * a + (3 * x2 - 4 * xi + 1) * l * ta + (-6 * x2 + 6 * xi) * b + (3 * x2 - 2 * xi) * l * tb;
-  axis = dp.normalized();
-}
-
-double NeedleTissueInteraction::closestArcLength(int n, const Vec3& p) const {
-  const NeedleBody& nd = *needles_[n];
-  const double L0 = nd.beam().elementLength();
-  double best = std::numeric_limits<double>::infinity(), s = 0;
-  for (int e = 0; e < nd.beam().numElements(); ++e) {
-    const Vec3& a = nd.state().p[e];
-    const Vec3 d = nd.state().p[e + 1] - a;
-    // Clamped to the segment, except beyond the tip, so that points the needle has been
-    // withdrawn past get s > L.
-    double t = std::max(0.0, d.dot(p - a) / d.squaredNorm());
-    if (e + 1 < nd.beam().numElements()) t = std::min(t, 1.0);
-    const double dist = (a + t * d - p).squaredNorm();
-    if (dist < best) {
-      best = dist;
-      s = (e + t) * L0;
-    }
-  }
-  return s;
 }
 
 bool NeedleTissueInteraction::locateCurrent(const Vec3& p, int hint, EmbeddedPoint& out) const {
@@ -172,24 +131,6 @@ bool NeedleTissueInteraction::locateCurrent(const Vec3& p, int hint, EmbeddedPoi
   for (int e = 0; e < mesh.numElements(); ++e)
     if (tryElement(e)) return true;
   return false;
-}
-
-int NeedleTissueInteraction::sheathOf(int n) const {
-  const Vec3 tip = needles_[n]->tipPosition();
-  for (size_t m = 0; m < needles_.size(); ++m) {
-    if (static_cast<int>(m) == n) continue;
-    const auto& sec = needles_[m]->beam().section();
-    if (!(sec.inner_radius > 0) || sec.inner_radius < needles_[n]->beam().section().outer_radius * (1 - 1e-9)) continue;
-    const double L = needles_[m]->beam().length();
-    const double s = closestArcLength(static_cast<int>(m), tip);
-    if (s <= 0 || s > L + 1e-3 * settings_.shaft_spacing) continue;
-    int e;
-    double xi;
-    Vec3 p, axis;
-    needlePoint(static_cast<int>(m), std::min(s, L), e, xi, p, axis);
-    if ((tip - p - axis * axis.dot(tip - p)).norm() <= sec.inner_radius) return static_cast<int>(m);
-  }
-  return -1;
 }
 
 // Lays shaft points every shaft_spacing along the cut path (in rest space) up to `upto`.
@@ -221,27 +162,15 @@ void NeedleTissueInteraction::updateGeometry() {
     const double L = nd.beam().length();
     if (c->kind() == ConstraintKind::Shaft) {
       const Vec3 pT = c->tissue.interpolate(mesh, x);
-      c->s = closestArcLength(c->needle, pT);
+      c->s = closestArcLength(nd, pT);
       if (c->s >= L) {
         // The needle has been withdrawn past it: pass it to another needle running through
         // it (the electrode left by the cannula), or release it.
-        int to = -1;
-        for (size_t m = 0; m < needles_.size() && to < 0; ++m) {
-          if (static_cast<int>(m) == c->needle) continue;
-          const double sm = closestArcLength(static_cast<int>(m), pT);
-          if (sm <= 0 || sm >= needles_[m]->beam().length()) continue;
-          int e;
-          double xi;
-          Vec3 p, axis;
-          needlePoint(static_cast<int>(m), sm, e, xi, p, axis);
-          const double reach = nd.beam().section().outer_radius + needles_[m]->beam().section().outer_radius;
-          if ((pT - p - axis * axis.dot(pT - p)).norm() <= reach) {
-            to = static_cast<int>(m);
-            c->s = sm;
-          }
-        }
+        double sm = 0;
+        const int to = needleThrough(needles_, c->needle, pT, sm);
         if (to < 0) continue;
         c->needle = to;
+        c->s = sm;
         c->lambda.setZero();
         if (tracks_[to].state == InsertionState::Approaching || tracks_[to].state == InsertionState::Out)
           tracks_[to].state = InsertionState::Inserted;
@@ -265,21 +194,17 @@ void NeedleTissueInteraction::updateGeometry() {
       }
     }
     const Vec3 pT = c->tissue.interpolate(mesh, x);
-    int e;
-    double xi;
-    Vec3 pN, axis;
-    needlePoint(c->needle, c->s, e, xi, pN, axis);
-    if (c->kind() != ConstraintKind::Puncture) c->frame = frameFrom(axis);
-    c->gap = c->frame.transpose() * (pN - pT);
+    const CentreLinePoint cl = centreLinePoint(*needles_[c->needle], c->s);
+    if (c->kind() != ConstraintKind::Puncture) c->frame = frameFrom(cl.axis);
+    c->gap = c->frame.transpose() * (cl.position - pT);
     kept.push_back(std::move(c));
   }
   constraints_ = std::move(kept);
 }
 
 InteractionStats NeedleTissueInteraction::solve(double h) {
-  const auto t0 = std::chrono::steady_clock::now();
+  const auto t0 = steadyNow();
   InteractionStats st;
-  const HexMesh& mesh = tissue_->mesh();
   const VecX& xT = tissue_->positions();
 
   // 1. Contact detection for needles not in the tissue.
@@ -306,123 +231,17 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
   updateGeometry();
   st.points = static_cast<int>(constraints_.size());
   if (constraints_.empty()) {
-    st.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    st.ms = msSince(t0);
     return st;
   }
 
-  // 2. Rows: touched tissue DOFs (columns of the compliance) and needle DOFs.
+  // 2-3. Rows over the DOFs they touch; compliance from each body's factor; the rows'
+  //      free velocities.
   const int np = st.points, m = 3 * np;
-  const DofMap& tdofs = tissue_->dofs();
-  std::vector<int> tcols;  // free tissue DOFs touched
-  std::vector<std::vector<int>> ncols(needles_.size());
-  std::vector<std::vector<int>> ncol_of(needles_.size());
-  for (size_t n = 0; n < needles_.size(); ++n) ncol_of[n].assign(needles_[n]->dofs().numFree(), -1);
-  struct RowGeom {
-    int e;
-    double xi;
-  };
-  std::vector<RowGeom> geom(np);
-  for (int p = 0; p < np; ++p) {
-    const auto& c = *constraints_[p];
-    for (int a = 0; a < 8; ++a)
-      for (int d = 0; d < 3; ++d) {
-        if (std::abs(c.tissue.weights[a]) < 1e-12) continue;  // e.g. a point on an element edge
-        const int full = 3 * mesh.element(c.tissue.element)[a] + d;
-        for (const DofWeight* x = tdofs.expansionBegin(full); x != tdofs.expansionEnd(full); ++x)
-          if (column_of_[x->free] < 0) {
-            column_of_[x->free] = static_cast<int>(tcols.size());
-            tcols.push_back(x->free);
-          }
-      }
-    Vec3 pN, axis;
-    needlePoint(c.needle, c.s, geom[p].e, geom[p].xi, pN, axis);
-    const DofMap& nd = needles_[c.needle]->dofs();
-    for (int node : {geom[p].e, geom[p].e + 1})
-      for (int d = 0; d < 6; ++d) {
-        const int f = nd.freeIndex(6 * node + d);
-        if (f >= 0 && ncol_of[c.needle][f] < 0) {
-          ncol_of[c.needle][f] = static_cast<int>(ncols[c.needle].size());
-          ncols[c.needle].push_back(f);
-        }
-      }
-  }
-  // H restricted to the touched DOFs, one block per body.
-  Eigen::MatrixXd HT = Eigen::MatrixXd::Zero(m, static_cast<Eigen::Index>(tcols.size()));
-  std::vector<Eigen::MatrixXd> HN(needles_.size());
-  for (size_t n = 0; n < needles_.size(); ++n) HN[n] = Eigen::MatrixXd::Zero(m, static_cast<Eigen::Index>(ncols[n].size()));
-  for (int p = 0; p < np; ++p) {
-    const auto& c = *constraints_[p];
-    for (int k = 0; k < 3; ++k) {
-      const Vec3 d = c.frame.col(k);
-      for (int a = 0; a < 8; ++a)
-        for (int j = 0; j < 3; ++j) {
-          if (std::abs(c.tissue.weights[a]) < 1e-12) continue;
-          const int full = 3 * mesh.element(c.tissue.element)[a] + j;
-          for (const DofWeight* x = tdofs.expansionBegin(full); x != tdofs.expansionEnd(full); ++x)
-            HT(3 * p + k, column_of_[x->free]) -= c.tissue.weights[a] * x->weight * d[j];
-        }
-      const DofMap& nd = needles_[c.needle]->dofs();
-      // Hermite weights: d . v = h00 d.v_a + h10 l (t_a x d).w_a + h01 d.v_b + h11 l (t_b x d).w_b
-      const double xi = geom[p].xi, x2 = xi * xi, x3 = x2 * xi;
-      const NeedleBody& body = *needles_[c.needle];
-      const int ea = geom[p].e;
-      const double l = (body.state().p[ea + 1] - body.state().p[ea]).norm();
-      const double wt[2] = {2 * x3 - 3 * x2 + 1, -2 * x3 + 3 * x2};
-      const double wr[2] = {(x3 - 2 * x2 + xi) * l, (x3 - x2) * l};
-      for (int q = 0; q < 2; ++q) {
-        const Vec3 rot = (body.state().q[ea + q] * body.beam().restDirection()).cross(d) * wr[q];
-        for (int j = 0; j < 3; ++j) {
-          const int ft = nd.freeIndex(6 * (ea + q) + j), fr = nd.freeIndex(6 * (ea + q) + 3 + j);
-          if (ft >= 0) HN[c.needle](3 * p + k, ncol_of[c.needle][ft]) += wt[q] * d[j];
-          if (fr >= 0) HN[c.needle](3 * p + k, ncol_of[c.needle][fr]) += rot[j];
-        }
-      }
-    }
-  }
-
-  // 3. Compliance from each body's factor; free velocities of the rows.
-  Eigen::MatrixXd C, W = Eigen::MatrixXd::Zero(m, m);
-  if (!tcols.empty()) {
-    tissue_->complianceBlock(tcols, C);
-    W.noalias() += HT * (C * HT.transpose());
-  }
-  for (size_t n = 0; n < needles_.size(); ++n) {
-    if (ncols[n].empty()) continue;
-    needles_[n]->complianceBlock(ncols[n], C);
-    W.noalias() += HN[n] * (C * HN[n].transpose());
-  }
-  W *= h;
-  VecX u_free = VecX::Zero(m);
-  {
-    VecX vT(tcols.size());
-    const VecX& v = tissue_->velocities();
-    const VecX& dv = tissue_->velocityChangeFree();
-    for (size_t i = 0; i < tcols.size(); ++i) vT[static_cast<Eigen::Index>(i)] = v[tdofs.freeToFull()[tcols[i]]] + dv[tcols[i]];
-    u_free += HT * vT;
-    for (size_t n = 0; n < needles_.size(); ++n) {
-      if (ncols[n].empty()) continue;
-      const DofMap& nd = needles_[n]->dofs();
-      VecX vN(ncols[n].size());
-      for (size_t i = 0; i < ncols[n].size(); ++i) {
-        const int full = nd.freeToFull()[ncols[n][i]];
-        vN[static_cast<Eigen::Index>(i)] = needles_[n]->velocities()[full] + needles_[n]->velocityChange()[full];
-      }
-      u_free += HN[n] * vN;
-    }
-    // Rows' dependence on the prescribed needle base (moving with the command).
-    for (int p = 0; p < np; ++p) {
-      const auto& c = *constraints_[p];
-      if (geom[p].e != 0) continue;
-      const NeedleBody& nd = *needles_[c.needle];
-      const Vec3 vb = nd.velocities().head<3>() + nd.velocityChange().head<3>();
-      const Vec3 wb = nd.velocities().segment<3>(3) + nd.velocityChange().segment<3>(3);
-      const double xi = geom[p].xi, x2 = xi * xi, x3 = x2 * xi;
-      const double l = (nd.state().p[1] - nd.state().p[0]).norm();
-      const Vec3 vpoint = (2 * x3 - 3 * x2 + 1) * vb +
-                          (x3 - 2 * x2 + xi) * l * wb.cross(nd.state().q[0] * nd.beam().restDirection());
-      u_free.segment<3>(3 * p) += c.frame.transpose() * vpoint;
-    }
-  }
+  ConstraintRows rows;
+  rows.build(constraints_, *tissue_, needles_, column_of_);
+  Eigen::MatrixXd W = rows.delassus(*tissue_, needles_, h);
+  const VecX u_free = rows.freeVelocity(*tissue_, needles_);
 
   // A tiny compliance on every row (1e-8 of the largest diagonal entry) keeps W positive
   // definite when shaft points closer together than the nodes make rows redundant.
@@ -448,11 +267,8 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
   for (int p = 0; p < np; ++p) constraints_[p]->lambda = lambda.segment<3>(3 * p);
 
   // 5. Corrections dv = h A^-1 H^T lambda for each body.
-  if (!tcols.empty()) tissue_->addInverseColumns(tcols, h * (HT.transpose() * lambda));
-  for (size_t n = 0; n < needles_.size(); ++n)
-    if (!ncols[n].empty()) needles_[n]->addInverseColumns(ncols[n], h * (HN[n].transpose() * lambda));
-  for (int f : tcols) column_of_[f] = -1;
-  st.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  rows.correct(lambda, h, *tissue_, needles_);
+  st.ms = msSince(t0);
   return st;
 }
 
@@ -518,7 +334,7 @@ void NeedleTissueInteraction::afterCommit() {
   // A needle whose tip comes out of its sheath inside the tissue is tied there.
   for (size_t n = 0; n < needles_.size(); ++n) {
     Track& tr = tracks_[n];
-    const bool sheathed = sheathOf(static_cast<int>(n)) >= 0;
+    const bool sheathed = sheathOf(needles_, static_cast<int>(n), 1e-3 * settings_.shaft_spacing) >= 0;
     if (tr.sheathed && !sheathed && (tr.state == InsertionState::Approaching || tr.state == InsertionState::Out ||
                                      tr.state == InsertionState::Inserted)) {
       bool has_tip = false;

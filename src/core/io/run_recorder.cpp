@@ -25,6 +25,8 @@ Percentiles percentiles(std::vector<double> v) {
   };
   p.median = at(0.5);
   p.p95 = at(0.95);
+  p.p99 = at(0.99);
+  p.p999 = at(0.999);
   p.max = v.back();
   p.mean = std::accumulate(v.begin(), v.end(), 0.0) / v.size();
   return p;
@@ -33,50 +35,115 @@ Percentiles percentiles(std::vector<double> v) {
 RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, const Options& options)
     : sim_(sim), options_(options) {
   dir_ = dir;
-  const bool centerline = options.centerline;
   estimate_ = sim.hasTissue() && (options.error_estimate || sim.adaptation());
   std::error_code ec;
   fs::create_directories(dir_, ec);
   if (ec) throw std::runtime_error("cannot create output directory '" + dir_ + "': " + ec.message());
   for (const char* f : {"summary.json", "timeseries.csv", "timeseries.partial.csv", "centerline.csv",
-                        "centerline.partial.csv", "tissue.vtu", "surface.vtp"})
+                        "centerline.partial.csv", "tissue.vtu", "surface.vtp", "tissue.pvd", "needles.pvd",
+                        "surface.pvd"})
     fs::remove(fs::path(dir_) / f, ec);
-  if (centerline && sim.numNeedles() > 0) {
+  if (options.centerline && sim.numNeedles() > 0) {
     centerline_.open(fs::path(dir_) / "centerline.partial.csv");
     centerline_ << "step,t,needle,node,s,x,y,z\n" << std::setprecision(10);
   }
+  if (options.vtu_every > 0) {
+    fs::remove_all(fs::path(dir_) / "vtu", ec);
+    fs::create_directories(fs::path(dir_) / "vtu", ec);
+    if (ec) throw std::runtime_error("cannot create " + dir_ + "/vtu: " + ec.message());
+    writeSeriesStep();  // the initial state
+  }
+  declareColumns();
   csv_.open(fs::path(dir_) / "timeseries.partial.csv");
   if (!csv_) throw std::runtime_error("cannot write to output directory '" + dir_ + "'");
-  csv_ << "step,t,dofs,step_ms,forces_ms,assemble_ms,factor_ms,solve_ms,linear_iterations,factorizations,"
-          "newton_iterations,kinetic_energy";
-  for (int i = 0; i < sim.numProbes(); ++i) {
-    const auto& n = sim.probeName(i);
-    csv_ << ',' << n << "_ux," << n << "_uy," << n << "_uz";
-  }
-  for (int i = 0; i < sim.numNeedles(); ++i) {
-    const auto& n = sim.needle(i).name();
-    for (const char* q : {"tip_x", "tip_y", "tip_z", "dir_x", "dir_y", "dir_z", "base_fx", "base_fy", "base_fz",
-                          "base_mx", "base_my", "base_mz"})
-      csv_ << ',' << n << '_' << q;
-    if (sim.interaction()) csv_ << ',' << n << "_state," << n << "_constraints";
-  }
-  if (sim.interaction()) csv_ << ",constraint_points,constraint_iterations,constraint_residual,constraint_ms";
-  // Targets: position, displacement from the planning (rest) position, distance to each tip.
-  for (int i = 0; i < sim.numTargets(); ++i) {
-    const auto& n = sim.targetName(i);
-    csv_ << ',' << n << "_x," << n << "_y," << n << "_z," << n << "_ux," << n << "_uy," << n << "_uz," << n << "_u";
-    for (int k = 0; k < sim.numNeedles(); ++k) csv_ << ',' << n << "_dist_" << sim.needle(k).name();
-  }
-  if (estimate_) csv_ << ",eta_global,eta_max,eta_relative";
-  if (const auto* a = sim.adaptation()) {
-    csv_ << ",tissue_elements";
-    for (int l = 0; l <= a->settings().max_level; ++l) csv_ << ",elements_L" << l;
-    csv_ << ",refined,coarsened,estimate_ms,mark_refine_ms,rebuild_ms";
-  }
+  for (size_t i = 0; i < columns_.size(); ++i) csv_ << (i ? "," : "") << columns_[i].name;
   csv_ << '\n' << std::setprecision(10);
 }
 
+// Every column of timeseries.csv, declared once: its name and how a row gets its value
+// (from the step's observables, its statistics and its wall time).
+void RunRecorder::declareColumns() {
+  auto col = [&](std::string name, Writer w) { columns_.push_back({std::move(name), std::move(w)}); };
+  auto vec = [&](const std::string& prefix, std::function<Vec3(const Row&)> v) {
+    const char* axes[3] = {"x", "y", "z"};
+    for (int d = 0; d < 3; ++d) col(prefix + axes[d], [v, d](std::ostream& o, const Row& r) { o << v(r)[d]; });
+  };
+  col("step", [](std::ostream& o, const Row& r) { o << r.obs.step; });
+  col("t", [](std::ostream& o, const Row& r) { o << r.obs.time; });
+  col("dofs", [](std::ostream& o, const Row& r) { o << r.obs.dofs; });
+  col("step_ms", [](std::ostream& o, const Row& r) { o << r.ms; });
+  col("forces_ms", [](std::ostream& o, const Row& r) { o << r.obs.stats.forces_ms; });
+  col("assemble_ms", [](std::ostream& o, const Row& r) { o << r.obs.stats.assemble_ms; });
+  col("factor_ms", [](std::ostream& o, const Row& r) { o << r.obs.stats.factor_ms; });
+  col("solve_ms", [](std::ostream& o, const Row& r) { o << r.obs.stats.solve_ms; });
+  col("linear_iterations", [](std::ostream& o, const Row& r) { o << r.obs.stats.linear_iterations; });
+  col("factorizations", [](std::ostream& o, const Row& r) { o << r.obs.stats.factorizations; });
+  col("newton_iterations", [](std::ostream& o, const Row& r) { o << r.obs.stats.newton_iterations; });
+  col("kinetic_energy", [](std::ostream& o, const Row& r) { o << r.obs.kinetic_energy; });
+  for (int i = 0; i < sim_.numProbes(); ++i)
+    vec(sim_.probeName(i) + "_u", [i](const Row& r) { return r.obs.probe_displacement[i]; });
+  const bool interaction = sim_.interaction() != nullptr;
+  for (int i = 0; i < sim_.numNeedles(); ++i) {
+    const std::string n = sim_.needle(i).name() + "_";
+    vec(n + "tip_", [i](const Row& r) { return r.obs.needles[i].tip; });
+    vec(n + "dir_", [i](const Row& r) { return r.obs.needles[i].tip_direction; });
+    // base_f, base_m: what the holder applies to the needle (the opposite of the sensor's
+    // reading, observables.hpp), tissue frame.
+    vec(n + "base_f", [i](const Row& r) { return Vec3(-r.obs.needles[i].holder_force); });
+    vec(n + "base_m", [i](const Row& r) { return Vec3(-r.obs.needles[i].holder_moment); });
+    if (interaction) {
+      col(n + "state", [i](std::ostream& o, const Row& r) { o << toString(r.obs.needles[i].state); });
+      col(n + "constraints", [i](std::ostream& o, const Row& r) { o << r.obs.needles[i].constraints; });
+    }
+  }
+  if (interaction) {
+    col("constraint_points", [](std::ostream& o, const Row& r) { o << r.obs.stats.constraint_points; });
+    col("constraint_iterations", [](std::ostream& o, const Row& r) { o << r.obs.stats.constraint_iterations; });
+    col("constraint_residual", [](std::ostream& o, const Row& r) { o << r.obs.stats.constraint_residual; });
+    col("constraint_ms", [](std::ostream& o, const Row& r) { o << r.obs.stats.constraint_ms; });
+  }
+  // Targets: position, displacement from the planning (rest) position, distance to each tip.
+  for (int i = 0; i < sim_.numTargets(); ++i) {
+    const std::string n = sim_.targetName(i) + "_";
+    vec(n, [i](const Row& r) { return r.obs.targets[i].position; });
+    vec(n + "u", [i](const Row& r) { return r.obs.targets[i].shift; });
+    col(n + "u", [i](std::ostream& o, const Row& r) { o << r.obs.targets[i].shift.norm(); });
+    for (int k = 0; k < sim_.numNeedles(); ++k)
+      col(n + "dist_" + sim_.needle(k).name(),
+          [i, k](std::ostream& o, const Row& r) { o << r.obs.targets[i].tip_distances[k]; });
+  }
+  if (estimate_) {
+    // With --error-estimate every step; otherwise (adaptivity) the last pass's estimate.
+    col("eta_global", [](std::ostream& o, const Row& r) { o << r.obs.eta_global; });
+    col("eta_max", [](std::ostream& o, const Row& r) { o << r.obs.eta_max; });
+    col("eta_relative", [](std::ostream& o, const Row& r) { o << r.obs.eta_relative; });
+  }
+  if (const auto* a = sim_.adaptation()) {
+    col("tissue_elements", [](std::ostream& o, const Row& r) { o << r.obs.tissue_elements; });
+    for (int l = 0; l <= a->settings().max_level; ++l)
+      col("elements_L" + std::to_string(l), [this, l](std::ostream& o, const Row&) {
+        const auto per = sim_.adaptation()->elementsPerLevel();
+        o << (l < static_cast<int>(per.size()) ? per[l] : 0);
+      });
+    col("refined", [](std::ostream& o, const Row& r) { o << r.obs.stats.refined; });
+    col("coarsened", [](std::ostream& o, const Row& r) { o << r.obs.stats.coarsened; });
+    col("estimate_ms", [](std::ostream& o, const Row& r) { o << r.obs.stats.estimate_ms; });
+    col("mark_refine_ms", [](std::ostream& o, const Row& r) { o << r.obs.stats.mark_refine_ms; });
+    col("rebuild_ms", [](std::ostream& o, const Row& r) { o << r.obs.stats.rebuild_ms; });
+  }
+}
+
 void RunRecorder::recordStep(const StepStats& s, double ms) {
+  if (options_.error_estimate && sim_.hasTissue()) sim_.errorEstimate();  // every step, asked for
+  observe(sim_, obs_);
+  obs_.stats = s;
+  const Row row{obs_, ms};
+  for (size_t i = 0; i < columns_.size(); ++i) {
+    if (i) csv_ << ',';
+    columns_[i].write(csv_, row);
+  }
+  csv_ << '\n';
+
   step_ms_.push_back(ms);
   forces_ms_.push_back(s.forces_ms);
   assemble_ms_.push_back(s.assemble_ms);
@@ -87,68 +154,76 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
   newton_iterations_ += s.newton_iterations;
   max_linear_iterations_ = std::max(max_linear_iterations_, s.linear_iterations);
   max_linear_residual_ = std::max(max_linear_residual_, s.linear_residual);
-  csv_ << sim_.stepIndex() << ',' << sim_.time() << ',' << sim_.numDofs() << ',' << ms << ','
-       << s.forces_ms << ',' << s.assemble_ms << ',' << s.factor_ms << ',' << s.solve_ms << ','
-       << s.linear_iterations << ',' << s.factorizations << ',' << s.newton_iterations << ','
-       << sim_.kineticEnergy();
-  for (int i = 0; i < sim_.numProbes(); ++i) {
-    const Vec3 u = sim_.probeDisplacement(i);
-    csv_ << ',' << u[0] << ',' << u[1] << ',' << u[2];
-  }
   for (int i = 0; i < sim_.numNeedles(); ++i) {
+    if (!centerline_.is_open()) break;
     const auto& nd = sim_.needle(i);
-    for (const Vec3& v : {nd.tipPosition(), nd.tipDirection(), nd.baseForce(), nd.baseMoment()})
-      csv_ << ',' << v[0] << ',' << v[1] << ',' << v[2];
-    if (const auto* in = sim_.interaction()) csv_ << ',' << toString(in->state(i)) << ',' << in->activePoints(i);
-    if (centerline_.is_open())
-      for (int k = 0; k < nd.beam().numNodes(); ++k) {
-        const Vec3& p = nd.state().p[k];
-        centerline_ << sim_.stepIndex() << ',' << sim_.time() << ',' << nd.name() << ',' << k << ','
-                    << k * nd.beam().elementLength() << ',' << p[0] << ',' << p[1] << ',' << p[2] << '\n';
-      }
+    for (int k = 0; k < nd.beam().numNodes(); ++k) {
+      const Vec3& p = nd.state().p[k];
+      centerline_ << obs_.step << ',' << obs_.time << ',' << nd.name() << ',' << k << ','
+                  << k * nd.beam().elementLength() << ',' << p[0] << ',' << p[1] << ',' << p[2] << '\n';
+    }
   }
-  if (sim_.interaction())
-    csv_ << ',' << s.constraint_points << ',' << s.constraint_iterations << ',' << s.constraint_residual << ','
-         << s.constraint_ms;
-  for (int i = 0; i < sim_.numTargets(); ++i) {
-    const Vec3 p = sim_.targetPosition(i), u = p - sim_.targetRest(i);
-    csv_ << ',' << p[0] << ',' << p[1] << ',' << p[2] << ',' << u[0] << ',' << u[1] << ',' << u[2] << ',' << u.norm();
+  for (int i = 0; i < sim_.numTargets(); ++i)
     for (int k = 0; k < sim_.numNeedles(); ++k) {
-      const double d = (sim_.needle(k).tipPosition() - p).norm();
-      csv_ << ',' << d;
       auto& m = min_target_distance_[sim_.targetName(i) + "/" + sim_.needle(k).name()];
-      m = std::min(m == 0 ? 1e300 : m, d);
+      m = std::min(m == 0 ? 1e300 : m, obs_.targets[i].tip_distances[k]);
     }
+  if (estimate_ && obs_.has_estimate) {
+    eta_last_ = obs_.eta_global;
+    eta_max_last_ = obs_.eta_max;
+    eta_rel_max_ = std::max(eta_rel_max_, obs_.eta_relative);
   }
-  if (estimate_) {
-    // With --error-estimate every step; otherwise (adaptivity) the last pass's estimate.
-    const ErrorEstimate* est = options_.error_estimate ? &sim_.errorEstimate() : sim_.lastEstimate();
-    if (est) {
-      eta_last_ = est->global;
-      eta_max_last_ = est->max;
-      const double rel = est->energy > 0 ? est->global / est->energy : 0;
-      eta_rel_max_ = std::max(eta_rel_max_, rel);
-      csv_ << ',' << est->global << ',' << est->max << ',' << rel;
-    } else {
-      csv_ << ",0,0,0";
-    }
-  }
-  if (const auto* a = sim_.adaptation()) {
-    csv_ << ',' << sim_.tissue().mesh().numElements();
-    for (int n : a->elementsPerLevel()) csv_ << ',' << n;
-    csv_ << ',' << s.refined << ',' << s.coarsened << ',' << s.estimate_ms << ',' << s.mark_refine_ms << ','
-         << s.rebuild_ms;
+  if (sim_.adaptation()) {
     adapt_ms_.push_back(s.adapt_ms());
     mesh_changes_ += s.mesh_changed;
     refined_total_ += s.refined;
     coarsened_total_ += s.coarsened;
   }
-  if (sim_.hasTissue()) max_tissue_dofs_ = std::max(max_tissue_dofs_, sim_.tissue().mesh().numDofs());
-  csv_ << '\n';
+  if (sim_.hasTissue()) max_tissue_dofs_ = std::max(max_tissue_dofs_, obs_.tissue_dofs);
   constraint_iterations_ += s.constraint_iterations;
   max_constraint_points_ = std::max(max_constraint_points_, s.constraint_points);
   max_constraint_residual_ = std::max(max_constraint_residual_, s.constraint_residual);
+  constraint_unconverged_ += s.constraint_converged ? 0 : 1;
   constraint_ms_.push_back(s.constraint_ms);
+  if (options_.vtu_every > 0 && obs_.step % options_.vtu_every == 0) writeSeriesStep();
+}
+
+void RunRecorder::writeSeriesStep() {
+  char name[64];
+  const long k = sim_.stepIndex();
+  const double t = sim_.time();
+  if (sim_.hasTissue()) {
+    const auto& body = sim_.tissue();
+    const ErrorEstimate& est = sim_.errorEstimate();
+    VtuCellData cells;
+    for (const auto& sgm : est.centroid_stress) cells.von_mises.push_back(SprEstimator::vonMises(sgm));
+    cells.eta = est.eta;
+    cells.level = sim_.elementLevels();
+    std::snprintf(name, sizeof name, "vtu/tissue_%06ld.vtu", k);
+    writeVtu((fs::path(dir_) / name).string(), body.mesh(), body.positions(), cells);
+    series_tissue_.emplace_back(t, name);
+    if (const auto* organ = sim_.organSurface()) {
+      std::vector<Vec3> p;
+      organ->positions(body.positions(), p);
+      std::snprintf(name, sizeof name, "vtu/surface_%06ld.vtp", k);
+      writeSurfaceVtp((fs::path(dir_) / name).string(), organ->rest(), p);
+      series_surface_.emplace_back(t, name);
+    }
+  }
+  if (sim_.numNeedles() > 0) {
+    std::vector<std::vector<Vec3>> lines;
+    for (int i = 0; i < sim_.numNeedles(); ++i) lines.push_back(sim_.needle(i).state().p);
+    std::snprintf(name, sizeof name, "vtu/needles_%06ld.vtp", k);
+    writeCentreLinesVtp((fs::path(dir_) / name).string(), lines);
+    series_needles_.emplace_back(t, name);
+  }
+  writeSeriesIndex();  // kept current: a failed run still opens up to its last written step
+}
+
+void RunRecorder::writeSeriesIndex() const {
+  if (!series_tissue_.empty()) writePvd((fs::path(dir_) / "tissue.pvd").string(), series_tissue_);
+  if (!series_needles_.empty()) writePvd((fs::path(dir_) / "needles.pvd").string(), series_needles_);
+  if (!series_surface_.empty()) writePvd((fs::path(dir_) / "surface.pvd").string(), series_surface_);
 }
 
 void RunRecorder::writeSummary(const std::string& status, double wall_s, long fail_step, const std::string& message) {
@@ -161,7 +236,7 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
     j["message"] = message;
   }
   j["scene"] = {{"name", scene.name}, {"file", scene.file}, {"description", scene.description}};
-  j["mode"] = scene.solver.mode == SolverScene::Mode::Dynamic ? "dynamic" : "static";
+  j["mode"] = scene.solver.mode == SolverSettings::Mode::Dynamic ? "dynamic" : "static";
   j["dofs"] = sim_.numDofs();
   j["elements"] = sim_.numElements();
   if (sim_.hasTissue()) {
@@ -199,9 +274,26 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
   j["time"] = sim_.time();
   j["wall_time_s"] = wall_s;
   auto pj = [](const Percentiles& p) {
-    return json{{"median", p.median}, {"p95", p.p95}, {"max", p.max}, {"mean", p.mean}};
+    return json{{"median", p.median}, {"p95", p.p95}, {"p99", p.p99}, {"p999", p.p999}, {"max", p.max}, {"mean", p.mean}};
   };
   j["step_ms"] = pj(percentiles(step_ms_));
+  {
+    // Deadlines of a real-time run at this dt: steps that took longer than dt, and the
+    // longest run of them in a row.
+    long misses = 0, run = 0, longest = 0;
+    const double dt_ms = 1e3 * sim_.dt();
+    for (double ms : step_ms_) {
+      if (ms > dt_ms) {
+        ++misses;
+        longest = std::max(longest, ++run);
+      } else {
+        run = 0;
+      }
+    }
+    j["step_ms"]["deadline_ms"] = dt_ms;
+    j["step_ms"]["deadline_misses"] = misses;
+    j["step_ms"]["longest_miss_run"] = longest;
+  }
   j["split_ms"] = {{"forces", pj(percentiles(forces_ms_))},
                    {"assemble", pj(percentiles(assemble_ms_))},
                    {"factor", pj(percentiles(factor_ms_))},
@@ -231,6 +323,7 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
     j["interaction"] = {{"constraint_iterations_total", constraint_iterations_},
                         {"constraint_points_max", max_constraint_points_},
                         {"constraint_residual_max", max_constraint_residual_},
+                        {"unconverged_steps", constraint_unconverged_},
                         {"constraint_ms", pj(percentiles(constraint_ms_))}};
   j["energy"] = {{"kinetic", sim_.kineticEnergy()}, {"elastic", sim_.elasticEnergy()}};
   json probes = json::object();

@@ -85,4 +85,36 @@ void writeSurfaceVtp(const std::string& path, const TriangleMesh& rest, const st
   });
 }
 
+void writeCentreLinesVtp(const std::string& path, const std::vector<std::vector<Vec3>>& lines) {
+  writeAtomically(path, [&](std::ofstream& o) {
+    int np = 0;
+    for (const auto& l : lines) np += static_cast<int>(l.size());
+    o << "<?xml version=\"1.0\"?>\n<VTKFile type=\"PolyData\" version=\"0.1\" byte_order=\"LittleEndian\">\n<PolyData>\n"
+      << "<Piece NumberOfPoints=\"" << np << "\" NumberOfLines=\"" << lines.size() << "\">\n";
+    o << "<CellData Scalars=\"needle\">\n<DataArray type=\"Int32\" Name=\"needle\" format=\"ascii\">\n";
+    for (size_t k = 0; k < lines.size(); ++k) o << k << '\n';
+    o << "</DataArray>\n</CellData>\n<Points>\n<DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n";
+    for (const auto& l : lines)
+      for (const auto& v : l) o << v[0] << ' ' << v[1] << ' ' << v[2] << '\n';
+    o << "</DataArray>\n</Points>\n<Lines>\n<DataArray type=\"Int32\" Name=\"connectivity\" format=\"ascii\">\n";
+    int next = 0;
+    for (const auto& l : lines) {
+      for (size_t i = 0; i < l.size(); ++i) o << next++ << ' ';
+      o << '\n';
+    }
+    o << "</DataArray>\n<DataArray type=\"Int32\" Name=\"offsets\" format=\"ascii\">\n";
+    int off = 0;
+    for (const auto& l : lines) o << (off += static_cast<int>(l.size())) << '\n';
+    o << "</DataArray>\n</Lines>\n</Piece>\n</PolyData>\n</VTKFile>\n";
+  });
+}
+
+void writePvd(const std::string& path, const std::vector<std::pair<double, std::string>>& steps) {
+  writeAtomically(path, [&](std::ofstream& o) {
+    o << "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"0.1\">\n<Collection>\n";
+    for (const auto& [t, file] : steps) o << "<DataSet timestep=\"" << t << "\" file=\"" << file << "\"/>\n";
+    o << "</Collection>\n</VTKFile>\n";
+  });
+}
+
 }  // namespace needle_sim

@@ -11,251 +11,29 @@
 #include <sstream>
 
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/scene/resource_check.hpp"
+#include "needle_sim/scene/scene_overrides.hpp"
+#include "needle_sim/scene/yaml_reader.hpp"
 
 namespace needle_sim {
 
 long Scene::numSteps() const { return static_cast<long>(std::llround(std::ceil(duration / dt - 1e-9))); }
 
-double estimateSolverBytes(const Vec3i& cells) {
-  const double nodes = double(cells[0] + 1) * (cells[1] + 1) * (cells[2] + 1);
-  const double elements = double(cells[0]) * cells[1] * cells[2];
-  const double dofs = 3 * nodes;
-  // Factor fill of a 3D grid under nested dissection grows like n^(4/3); scaled from the
-  // 28,611-DOF phantom (14.5 M nonzeros, DESIGN.md §6).
-  const double lnz = 14.5e6 * std::pow(dofs / 28611.0, 4.0 / 3.0);
-  const double matrix = 81.0 / 2 * dofs * 12;     // upper triangle, value + index
-  const double positions = elements * 576 * 4.0;  // assembly scatter map
-  const double vectors = dofs * 8 * 30;
-  return 8 * 1.5 * lnz + matrix + positions + vectors;
-}
-
 namespace {
 
-const char* typeName(const YAML::Node& n) {
-  switch (n.Type()) {
-    case YAML::NodeType::Map: return "a map";
-    case YAML::NodeType::Sequence: return "a list";
-    case YAML::NodeType::Scalar: return "a scalar";
-    case YAML::NodeType::Null: return "empty";
-    default: return "undefined";
-  }
-}
-
-// Validating reader: every accessor names the key path in its errors.
-class Reader {
- public:
-  explicit Reader(std::string file) : file_(std::move(file)) {}
-
-  [[noreturn]] void fail(const std::string& key, const std::string& problem) const {
-    throw InputError(file_, key, problem);
-  }
-
-  static std::string join(const std::string& path, const std::string& key) {
-    return path.empty() ? key : path + "." + key;
-  }
-
-  void requireMap(const YAML::Node& n, const std::string& path) const {
-    if (!n.IsMap()) fail(path, std::string("must be a map, got ") + typeName(n));
-  }
-
-  // Rejects keys outside `allowed`.
-  void checkKeys(const YAML::Node& n, const std::string& path, const std::vector<std::string>& allowed) const {
-    requireMap(n, path);
-    for (const auto& kv : n) {
-      if (!kv.first.IsScalar()) fail(path, std::string("has a key that is not a name (a ") + typeName(kv.first) + ")");
-      const std::string k = kv.first.as<std::string>();
-      if (std::find(allowed.begin(), allowed.end(), k) == allowed.end()) {
-        std::string list;
-        for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + a;
-        fail(join(path, k), "unknown key (allowed here: " + list + ")");
-      }
-    }
-  }
-
-  YAML::Node child(const YAML::Node& n, const std::string& path, const std::string& key, bool required) const {
-    YAML::Node c = n[key];
-    if (!c.IsDefined() || c.IsNull()) {
-      if (required) fail(join(path, key), "missing required key");
-      return YAML::Node(YAML::NodeType::Undefined);
-    }
-    return c;
-  }
-
-  double number(const YAML::Node& n, const std::string& key) const {
-    if (!n.IsScalar()) fail(key, std::string("must be a number, got ") + typeName(n));
-    double v;
-    try {
-      v = n.as<double>();
-    } catch (const YAML::Exception&) {
-      fail(key, "must be a number, got '" + n.Scalar() + "'");
-    }
-    if (!std::isfinite(v)) fail(key, "must be finite, got '" + n.Scalar() + "'");
-    return v;
-  }
-
-  long long integer(const YAML::Node& n, const std::string& key) const {
-    if (!n.IsScalar()) fail(key, std::string("must be an integer, got ") + typeName(n));
-    try {
-      return n.as<long long>();
-    } catch (const YAML::Exception&) {
-      fail(key, "must be an integer, got '" + n.Scalar() + "'");
-    }
-  }
-
-  std::string string(const YAML::Node& n, const std::string& key) const {
-    if (!n.IsScalar()) fail(key, std::string("must be a string, got ") + typeName(n));
-    return n.Scalar();
-  }
-
-  Vec3 vec3(const YAML::Node& n, const std::string& key) const {
-    if (!n.IsSequence() || n.size() != 3) fail(key, "must be a list of 3 numbers [x, y, z]");
-    Vec3 v;
-    for (int i = 0; i < 3; ++i) v[i] = number(n[i], key + "[" + std::to_string(i) + "]");
-    return v;
-  }
-
-  double positive(const YAML::Node& parent, const std::string& path, const std::string& key) const {
-    const std::string k = join(path, key);
-    const double v = number(child(parent, path, key, true), k);
-    if (!(v > 0)) fail(k, "must be > 0, got " + fmt(v));
-    return v;
-  }
-
-  static std::string fmt(double v) {
-    std::ostringstream s;
-    s << v;
-    return s.str();
-  }
-
-  const std::string& file() const { return file_; }
-
- private:
-  std::string file_;
-};
-
-BoxRegion readBox(const Reader& r, const YAML::Node& n, const std::string& path) {
-  r.checkKeys(n, path, {"min", "max"});
-  BoxRegion b;
-  b.min = r.vec3(r.child(n, path, "min", true), path + ".min");
-  b.max = r.vec3(r.child(n, path, "max", true), path + ".max");
-  for (int d = 0; d < 3; ++d)
-    if (!(b.max[d] > b.min[d]))
-      r.fail(path, "empty or inverted box: max must exceed min in every coordinate (axis " +
-                       std::string(1, "xyz"[d]) + ": min " + Reader::fmt(b.min[d]) + ", max " +
-                       Reader::fmt(b.max[d]) + ")");
-  return b;
-}
-
-// A file named in the scene, relative to the scene file's folder.
-std::string resolvePath(const Reader& r, const std::string& name) {
-  if (name.empty() || name[0] == '/') return name;
-  const std::string& f = r.file();
-  const auto slash = f.find_last_of('/');
-  return slash == std::string::npos ? name : f.substr(0, slash + 1) + name;
-}
-
-// {scale, transform: {translation, rpy}} next to a surface file; `base` gives the defaults.
-SurfaceTransform readTransform(const Reader& r, const YAML::Node& n, const std::string& path,
-                               const SurfaceTransform& base = {}) {
-  SurfaceTransform t = base;
-  if (auto v = r.child(n, path, "scale", false)) {
-    t.scale = r.number(v, Reader::join(path, "scale"));
-    if (!(t.scale > 0)) r.fail(Reader::join(path, "scale"), "must be > 0, got " + Reader::fmt(t.scale));
-  }
-  if (auto tr = r.child(n, path, "transform", false)) {
-    const std::string p = Reader::join(path, "transform");
-    r.checkKeys(tr, p, {"translation", "rpy"});
-    t.translation = Vec3::Zero();
-    t.rotation = Mat3::Identity();
-    if (auto v = r.child(tr, p, "translation", false)) t.translation = r.vec3(v, p + ".translation");
-    if (auto v = r.child(tr, p, "rpy", false)) {
-      const Vec3 a = r.vec3(v, p + ".rpy");  // roll, pitch, yaw [rad], fixed axes x, y, z
-      t.rotation = (Eigen::AngleAxisd(a[2], Vec3::UnitZ()) * Eigen::AngleAxisd(a[1], Vec3::UnitY()) *
-                    Eigen::AngleAxisd(a[0], Vec3::UnitX()))
-                       .toRotationMatrix();
-    }
-  }
-  return t;
-}
-
-std::shared_ptr<const TriangleMesh> readSurfaceFile(const Reader& r, const YAML::Node& n, const std::string& key,
-                                                    const SurfaceTransform& t) {
-  const std::string name = r.string(n, key);
-  return std::make_shared<const TriangleMesh>(loadTriangleMesh(resolvePath(r, name), t, r.file(), key));
-}
-
-Vec3 centerOf(const Reader& r, const YAML::Node& n, const std::string& path, double& radius) {
-  r.checkKeys(n, path, {"center", "radius"});
-  const Vec3 c = r.vec3(r.child(n, path, "center", true), path + ".center");
-  radius = r.positive(n, path, "radius");
-  return c;
-}
-
-Region readRegion(const Reader& r, const YAML::Node& n, const std::string& path, const Scene* s = nullptr) {
-  r.checkKeys(n, path, {"box", "sphere", "surface_distance"});
-  const int given = (n["box"] ? 1 : 0) + (n["sphere"] ? 1 : 0) + (n["surface_distance"] ? 1 : 0);
-  if (given != 1) r.fail(path, "give exactly one of 'box', 'sphere', 'surface_distance'");
-  Region reg;
-  if (n["box"]) {
-    reg.box = readBox(r, n["box"], path + ".box");
-  } else if (n["sphere"]) {
-    reg.kind = Region::Kind::Sphere;
-    reg.center = centerOf(r, n["sphere"], path + ".sphere", reg.radius);
-  } else {
-    const std::string p = path + ".surface_distance";
-    const auto sd = n["surface_distance"];
-    r.checkKeys(sd, p, {"surface", "scale", "transform", "distance", "patch"});
-    reg.kind = Region::Kind::SurfaceDistance;
-    reg.distance = r.positive(sd, p, "distance");
-    const auto f = r.child(sd, p, "surface", true);
-    const bool organ = f.IsScalar() && f.Scalar() == "tissue";
-    if (organ) {
-      if (!s || !s->tissue.geometry.surface)
-        r.fail(p + ".surface", "'tissue' names the organ surface, but tissue.geometry has no surface");
-      if (sd["scale"] || sd["transform"]) r.fail(p, "'scale'/'transform' do not apply to the organ surface");
-      reg.surface = s->tissue.geometry.surface;
-    } else {
-      const SurfaceTransform base = s ? s->tissue.geometry.transform : SurfaceTransform{};
-      reg.surface = readSurfaceFile(r, f, p + ".surface", readTransform(r, sd, p, base));
-    }
-    Region patch;
-    bool has_patch = false;
-    if (auto pa = r.child(sd, p, "patch", false)) {
-      patch = readRegion(r, pa, p + ".patch", s);
-      if (patch.kind == Region::Kind::SurfaceDistance) r.fail(p + ".patch", "must be a 'box' or a 'sphere'");
-      has_patch = true;
-    }
-    const TriangleMesh& m = *reg.surface;
-    reg.patch_min = Vec3::Constant(1e300);
-    reg.patch_max = Vec3::Constant(-1e300);
-    for (int t = 0; t < m.numTriangles(); ++t) {
-      const auto& tr = m.triangle(t);
-      const Vec3 c = (m.vertex(tr[0]) + m.vertex(tr[1]) + m.vertex(tr[2])) / 3;
-      if (has_patch && !patch.contains(c, 0)) continue;
-      reg.patch.push_back(t);
-      for (int k : tr) {
-        reg.patch_min = reg.patch_min.cwiseMin(m.vertex(k));
-        reg.patch_max = reg.patch_max.cwiseMax(m.vertex(k));
-      }
-    }
-    if (reg.patch.empty()) r.fail(p + ".patch", "contains no triangle of the surface");
-  }
-  return reg;
-}
-
-void readTime(const Reader& r, const YAML::Node& n, Scene& s) {
+void readTime(const SceneReader& r, const YAML::Node& n, Scene& s) {
   r.checkKeys(n, "time", {"dt", "duration"});
   s.dt = r.positive(n, "time", "dt");
   s.duration = r.positive(n, "time", "duration");
   if (s.duration / s.dt > 1e9) r.fail("time", "duration / dt exceeds 1e9 steps");
 }
 
-void readSolver(const Reader& r, const YAML::Node& n, Scene& s) {
+void readSolver(const SceneReader& r, const YAML::Node& n, Scene& s) {
   r.checkKeys(n, "solver", {"mode", "rayleigh", "static", "linear"});
   if (auto m = r.child(n, "solver", "mode", false)) {
     const std::string mode = r.string(m, "solver.mode");
-    if (mode == "dynamic") s.solver.mode = SolverScene::Mode::Dynamic;
-    else if (mode == "static") s.solver.mode = SolverScene::Mode::Static;
+    if (mode == "dynamic") s.solver.mode = SolverSettings::Mode::Dynamic;
+    else if (mode == "static") s.solver.mode = SolverSettings::Mode::Static;
     else r.fail("solver.mode", "must be 'dynamic' or 'static', got '" + mode + "'");
   }
   if (auto ray = r.child(n, "solver", "rayleigh", false)) {
@@ -291,8 +69,8 @@ void readSolver(const Reader& r, const YAML::Node& n, Scene& s) {
     }
     auto readInt = [&](const char* key, int lo, int& out) {
       if (auto v = r.child(li, p, key, false)) {
-        const long long x = r.integer(v, Reader::join(p, key));
-        if (x < lo || x > 1000000) r.fail(Reader::join(p, key), "must be in [" + std::to_string(lo) + ", 1000000]");
+        const long long x = r.integer(v, SceneReader::join(p, key));
+        if (x < lo || x > 1000000) r.fail(SceneReader::join(p, key), "must be in [" + std::to_string(lo) + ", 1000000]");
         out = static_cast<int>(x);
       }
     };
@@ -309,7 +87,7 @@ void readSolver(const Reader& r, const YAML::Node& n, Scene& s) {
   }
 }
 
-void readTissue(const Reader& r, const YAML::Node& n, Scene& s) {
+void readTissue(const SceneReader& r, const YAML::Node& n, Scene& s) {
   r.checkKeys(n, "tissue", {"geometry", "grid", "material", "gravity", "body_force", "dirichlet", "tractions"});
   auto& T = s.tissue;
   // geometry: exactly one of box / block / surface
@@ -380,24 +158,16 @@ void readTissue(const Reader& r, const YAML::Node& n, Scene& s) {
     ImmersedGrid::layout(T.geometry.surface->boundsMin(), T.geometry.surface->boundsMax(), G, T.cells, origin, h);
     if (T.cells.cast<double>().prod() > 2e7)
       r.fail(G.cells ? "tissue.grid.cells" : "tissue.grid.cell_size",
-             "gives a grid of " + Reader::fmt(T.cells.cast<double>().prod()) + " cells over the surface's box: too many");
+             "gives a grid of " + SceneReader::fmt(T.cells.cast<double>().prod()) + " cells over the surface's box: too many");
   }
-  const double need = estimateSolverBytes(T.cells);
-  const double have = double(sysconf(_SC_PHYS_PAGES)) * double(sysconf(_SC_PAGE_SIZE));
-  if (need > 0.6 * have) {
-    std::ostringstream m;
-    m.precision(3);
-    m << "grid of " << double(T.cells[0]) * T.cells[1] * T.cells[2] << " cells needs an estimated "
-      << need / (1 << 30) << " GiB, more than 60% of this machine's " << have / (1 << 30) << " GiB";
-    r.fail("tissue.grid.cells", m.str());
-  }
+  checkSolverMemory(T.cells, r.file(), "tissue.grid.cells");
   // material
   const auto mat = r.child(n, "tissue", "material", true);
   r.checkKeys(mat, "tissue.material", {"young", "poisson", "density"});
   T.material.young = r.positive(mat, "tissue.material", "young");
   T.material.poisson = r.number(r.child(mat, "tissue.material", "poisson", true), "tissue.material.poisson");
   if (!(T.material.poisson > -1 && T.material.poisson < 0.5))
-    r.fail("tissue.material.poisson", "must be in (-1, 0.5), got " + Reader::fmt(T.material.poisson));
+    r.fail("tissue.material.poisson", "must be in (-1, 0.5), got " + SceneReader::fmt(T.material.poisson));
   T.material.density = r.positive(mat, "tissue.material", "density");
   if (auto v = r.child(n, "tissue", "gravity", false)) T.gravity = r.vec3(v, "tissue.gravity");
   if (auto v = r.child(n, "tissue", "body_force", false)) T.body_force = r.vec3(v, "tissue.body_force");
@@ -439,14 +209,7 @@ void readTissue(const Reader& r, const YAML::Node& n, Scene& s) {
   }
 }
 
-Vec3 unitVector(const Reader& r, const YAML::Node& n, const std::string& key) {
-  const Vec3 d = r.vec3(n, key);
-  if (std::abs(d.norm() - 1) > 1e-6)
-    r.fail(key, "must be a unit vector, got length " + Reader::fmt(d.norm()));
-  return d;
-}
-
-NeedleScene readNeedle(const Reader& r, const YAML::Node& n, const std::string& p) {
+NeedleScene readNeedle(const SceneReader& r, const YAML::Node& n, const std::string& p) {
   r.checkKeys(n, p, {"name", "length", "radius", "inner_radius", "young", "poisson", "density", "elements", "base",
                      "motion", "tip_force", "tip_moment", "gravity"});
   static const std::regex ident("[A-Za-z0-9_]+");
@@ -463,12 +226,12 @@ NeedleScene readNeedle(const Reader& r, const YAML::Node& n, const std::string& 
     s.inner_radius = r.number(v, p + ".inner_radius");
     if (s.inner_radius < 0) r.fail(p + ".inner_radius", "must be >= 0");
     if (s.inner_radius >= s.radius)
-      r.fail(p + ".inner_radius", "must be smaller than radius (" + Reader::fmt(s.inner_radius) +
-                                      " >= " + Reader::fmt(s.radius) + ")");
+      r.fail(p + ".inner_radius", "must be smaller than radius (" + SceneReader::fmt(s.inner_radius) +
+                                      " >= " + SceneReader::fmt(s.radius) + ")");
   }
   s.young = r.positive(n, p, "young");
   s.poisson = r.number(r.child(n, p, "poisson", true), p + ".poisson");
-  if (!(s.poisson > -1 && s.poisson < 0.5)) r.fail(p + ".poisson", "must be in (-1, 0.5), got " + Reader::fmt(s.poisson));
+  if (!(s.poisson > -1 && s.poisson < 0.5)) r.fail(p + ".poisson", "must be in (-1, 0.5), got " + SceneReader::fmt(s.poisson));
   s.density = r.positive(n, p, "density");
   const long long el = r.integer(r.child(n, p, "elements", true), p + ".elements");
   if (el < 1 || el > 100000) r.fail(p + ".elements", "must be in [1, 100000], got " + std::to_string(el));
@@ -490,7 +253,7 @@ NeedleScene readNeedle(const Reader& r, const YAML::Node& n, const std::string& 
       k.t = r.number(r.child(m[i], q, "t", true), q + ".t");
       if (k.t < 0) r.fail(q + ".t", "must be >= 0");
       if (i > 0 && !(k.t > s.motion.back().t))
-        r.fail(q + ".t", "times must increase strictly (" + Reader::fmt(k.t) + " after " + Reader::fmt(s.motion.back().t) + ")");
+        r.fail(q + ".t", "times must increase strictly (" + SceneReader::fmt(k.t) + " after " + SceneReader::fmt(s.motion.back().t) + ")");
       const bool adv = static_cast<bool>(m[i]["advance"]);
       const bool pose = m[i]["position"] || m[i]["direction"];
       if (adv == pose) r.fail(q, "give either 'advance' or 'position' and 'direction'");
@@ -510,7 +273,7 @@ NeedleScene readNeedle(const Reader& r, const YAML::Node& n, const std::string& 
   return s;
 }
 
-void readNeedles(const Reader& r, const YAML::Node& root, Scene& s) {
+void readNeedles(const SceneReader& r, const YAML::Node& root, Scene& s) {
   if (root["needle"] && root["needles"]) r.fail("needles", "give either 'needle' or 'needles', not both");
   if (auto n = r.child(root, "", "needle", false)) s.needles.push_back(readNeedle(r, n, "needle"));
   if (auto list = r.child(root, "", "needles", false)) {
@@ -526,14 +289,14 @@ void readNeedles(const Reader& r, const YAML::Node& root, Scene& s) {
   }
 }
 
-void readInteraction(const Reader& r, const YAML::Node& n, Scene& s) {
+void readInteraction(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "interaction";
   r.checkKeys(n, p, {"puncture_force", "cutting_force", "friction", "shaft_spacing", "solver"});
   InteractionSettings is;
   auto nonNegative = [&](const char* key) {
-    const std::string k = Reader::join(p, key);
+    const std::string k = SceneReader::join(p, key);
     const double v = r.number(r.child(n, p, key, true), k);
-    if (v < 0) r.fail(k, "must be >= 0, got " + Reader::fmt(v));
+    if (v < 0) r.fail(k, "must be >= 0, got " + SceneReader::fmt(v));
     return v;
   };
   is.puncture_force = nonNegative("puncture_force");
@@ -551,11 +314,11 @@ void readInteraction(const Reader& r, const YAML::Node& n, Scene& s) {
   }
   if (!s.has_tissue) r.fail(p, "needs a tissue (the scene has none)");
   if (s.needles.empty()) r.fail(p, "needs a needle (the scene has none)");
-  if (s.solver.mode != SolverScene::Mode::Dynamic) r.fail(p, "needs solver.mode: dynamic");
+  if (s.solver.mode != SolverSettings::Mode::Dynamic) r.fail(p, "needs solver.mode: dynamic");
   s.interaction = is;
 }
 
-void readAdaptivity(const Reader& r, const YAML::Node& n, Scene& s) {
+void readAdaptivity(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "adaptivity";
   if (!n.IsMap()) r.fail(p, "must be a map {estimator, marking, theta, max_level, ...}");
   r.checkKeys(n, p, {"estimator", "marking", "theta", "max_level", "max_dofs", "tolerance", "every_steps", "coarsen"});
@@ -571,11 +334,11 @@ void readAdaptivity(const Reader& r, const YAML::Node& n, Scene& s) {
     else r.fail(p + ".marking", "must be max or bulk, got '" + m + "'");
   }
   a.theta = r.number(r.child(n, p, "theta", true), p + ".theta");
-  if (!(a.theta > 0 && a.theta <= 1)) r.fail(p + ".theta", "must be in (0, 1], got " + Reader::fmt(a.theta));
+  if (!(a.theta > 0 && a.theta <= 1)) r.fail(p + ".theta", "must be in (0, 1], got " + SceneReader::fmt(a.theta));
   auto integerIn = [&](const YAML::Node& parent, const std::string& path, const char* key, long long lo, long long hi,
                        int& out) {
     if (auto v = r.child(parent, path, key, false)) {
-      const std::string k = Reader::join(path, key);
+      const std::string k = SceneReader::join(path, key);
       const long long x = r.integer(v, k);
       if (x < lo || x > hi)
         r.fail(k, "must be in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got " + std::to_string(x));
@@ -587,7 +350,7 @@ void readAdaptivity(const Reader& r, const YAML::Node& n, Scene& s) {
   integerIn(n, p, "every_steps", 1, 1000000000, a.every_steps);
   if (auto v = r.child(n, p, "tolerance", false)) {
     a.tolerance = r.number(v, p + ".tolerance");
-    if (a.tolerance < 0) r.fail(p + ".tolerance", "must be >= 0, got " + Reader::fmt(a.tolerance));
+    if (a.tolerance < 0) r.fail(p + ".tolerance", "must be >= 0, got " + SceneReader::fmt(a.tolerance));
   }
   if (auto c = r.child(n, p, "coarsen", false)) {
     const std::string q = p + ".coarsen";
@@ -600,13 +363,13 @@ void readAdaptivity(const Reader& r, const YAML::Node& n, Scene& s) {
     }
     if (auto v = r.child(c, q, "theta_coarsen", false)) a.theta_coarsen = r.number(v, q + ".theta_coarsen");
     if (!(a.theta_coarsen > 0 && a.theta_coarsen < 1))
-      r.fail(q + ".theta_coarsen", "must be in (0, 1), got " + Reader::fmt(a.theta_coarsen));
+      r.fail(q + ".theta_coarsen", "must be in (0, 1), got " + SceneReader::fmt(a.theta_coarsen));
     // A merged parent's error is about twice its children's combined (linear elements,
     // h doubled): below theta / 2 it cannot be marked again at once, so nothing flickers.
     if (a.coarsen && a.marking == AdaptivitySettings::Marking::Max && !(a.theta_coarsen < 0.5 * a.theta))
-      r.fail(q + ".theta_coarsen", "must be < theta / 2 = " + Reader::fmt(0.5 * a.theta) +
+      r.fail(q + ".theta_coarsen", "must be < theta / 2 = " + SceneReader::fmt(0.5 * a.theta) +
                                        " (hysteresis: a merged element would be refined again at once), got " +
-                                       Reader::fmt(a.theta_coarsen));
+                                       SceneReader::fmt(a.theta_coarsen));
     integerIn(c, q, "after", 1, 1000000, a.coarsen_after);
   }
   if (!s.has_tissue) r.fail(p, "needs a tissue (the scene has none)");
@@ -616,7 +379,7 @@ void readAdaptivity(const Reader& r, const YAML::Node& n, Scene& s) {
   s.adaptivity = a;
 }
 
-void readProbes(const Reader& r, const YAML::Node& n, Scene& s) {
+void readProbes(const SceneReader& r, const YAML::Node& n, Scene& s) {
   if (!n.IsSequence()) r.fail("probes", "must be a list of {name, point}");
   static const std::regex ident("[A-Za-z0-9_]+");
   std::set<std::string> names;
@@ -633,7 +396,7 @@ void readProbes(const Reader& r, const YAML::Node& n, Scene& s) {
   }
 }
 
-void readTargets(const Reader& r, const YAML::Node& n, Scene& s) {
+void readTargets(const SceneReader& r, const YAML::Node& n, Scene& s) {
   if (!n.IsSequence()) r.fail("targets", "must be a list of {name, point} or {name, surface}");
   static const std::regex ident("[A-Za-z0-9_]+");
   std::set<std::string> names;
@@ -662,10 +425,10 @@ void readTargets(const Reader& r, const YAML::Node& n, Scene& s) {
   }
 }
 
-void readBrainShift(const Reader& r, const YAML::Node& n, Scene& s) {
+void readBrainShift(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "brain_shift";
   r.checkKeys(n, p, {"gravity", "csf_level", "density", "skull", "target_shift", "target", "load_steps", "tolerance"});
-  BrainShiftScene b;
+  BrainShiftSettings b;
   if (auto v = r.child(n, p, "gravity", false)) b.gravity = r.vec3(v, p + ".gravity");
   if (!(b.gravity.norm() > 0)) r.fail(p + ".gravity", "must be a non-zero vector");
   if (auto v = r.child(n, p, "csf_level", false)) {
@@ -718,58 +481,10 @@ void readBrainShift(const Reader& r, const YAML::Node& n, Scene& s) {
   s.brain_shift = b;
 }
 
-// Applies "a.b.c=value" to the tree, creating maps on the way; indices select list items.
-void applyOverride(YAML::Node root, const std::string& spec, const std::string& file) {
-  const auto eq = spec.find('=');
-  if (eq == std::string::npos || eq == 0)
-    throw InputError(file, spec, "override must have the form key.path=value");
-  const std::string path = spec.substr(0, eq);
-  YAML::Node value;
-  try {
-    value = YAML::Load(spec.substr(eq + 1));
-  } catch (const YAML::Exception& e) {
-    throw InputError(file, path, "override value is not valid YAML: " + e.msg);
-  }
-  std::vector<std::string> parts;
-  std::stringstream ss(path);
-  for (std::string p; std::getline(ss, p, '.');) {
-    if (p.empty()) throw InputError(file, path, "empty component in override key");
-    parts.push_back(p);
-  }
-  YAML::Node cur = root;
-  for (size_t i = 0; i < parts.size(); ++i) {
-    const std::string& k = parts[i];
-    const bool last = i + 1 == parts.size();
-    if (cur.IsSequence()) {
-      size_t idx;
-      try {
-        size_t used = 0;
-        idx = std::stoul(k, &used);
-        if (used != k.size()) throw std::invalid_argument(k);
-      } catch (const std::exception&) {
-        throw InputError(file, path, "'" + k + "' must be a list index");
-      }
-      if (idx >= cur.size())
-        throw InputError(file, path, "list index " + k + " out of range (size " + std::to_string(cur.size()) + ")");
-      if (last) cur[idx] = value;
-      else cur.reset(YAML::Node(cur[idx]));
-      continue;
-    }
-    if (!cur.IsMap() && !cur.IsNull())
-      throw InputError(file, path, "cannot descend into '" + k + "': parent is not a map");
-    if (last) {
-      cur[k] = value;
-    } else {
-      if (!cur[k] || cur[k].IsNull()) cur[k] = YAML::Node(YAML::NodeType::Map);
-      YAML::Node next = cur[k];
-      cur.reset(next);
-    }
-  }
-}
-
 Scene build(YAML::Node root, const std::string& file, const std::vector<std::string>& overrides) {
-  Reader r(file);
+  SceneReader r(file);
   if (!root.IsMap()) r.fail("", std::string("scene must be a YAML map at the top level, got ") + typeName(root));
+  root = resolveExtends(root, file);
   for (const auto& o : overrides) applyOverride(root, o, file);
   r.checkKeys(root, "", {"name", "description", "time", "solver", "tissue", "needle", "needles", "interaction", "adaptivity",
                         "probes", "targets", "brain_shift"});
@@ -801,7 +516,7 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
     if (!s.has_tissue) r.fail("brain_shift", "needs a tissue (the scene has none)");
     readBrainShift(r, v, s);
   }
-  if (s.has_tissue && s.solver.mode == SolverScene::Mode::Static && s.tissue.dirichlet.empty())
+  if (s.has_tissue && s.solver.mode == SolverSettings::Mode::Static && s.tissue.dirichlet.empty())
     r.fail("tissue.dirichlet", "static mode needs Dirichlet conditions that hold the body (none given)");
   return s;
 }

@@ -6,28 +6,33 @@
 #include <sstream>
 
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/sim/observables.hpp"
+#include "needle_sim/core/stopwatch.hpp"
 
 namespace needle_sim {
 
 namespace {
-double msSince(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
 
+// A sample from the simulation's observables (the same numbers the recorder and the node
+// report).
 PredictionSample sampleOf(const Simulation& sim, double t, int needle) {
+  const Observables o = observe(sim);
   PredictionSample s;
   s.t = t;
-  for (int i = 0; i < sim.numTargets(); ++i) s.targets.push_back(sim.targetPosition(i));
-  for (int n = 0; n < sim.numNeedles(); ++n) {
-    s.tips.push_back(sim.needle(n).tipPosition());
-    s.base_forces.push_back(-sim.needle(n).baseForce());
+  for (const auto& tg : o.targets) {
+    s.targets.push_back(tg.position);
+    s.tip_distances.push_back(tg.tip_distances[needle]);
   }
-  for (const Vec3& p : s.targets) s.tip_distances.push_back((p - s.tips[needle]).norm());
+  for (const auto& n : o.needles) {
+    s.tips.push_back(n.tip);
+    s.base_forces.push_back(n.holder_force);
+  }
   return s;
 }
 
 // Every check before any work: a plan that cannot run changes nothing and costs nothing.
-long checkPlan(const Simulation& live, const InsertionPlan& plan, long max_steps, double& dt, double& duration) {
+// (Whether a plan is safe for a robot, the limits, is the command guard's business.)
+long requireRunnable(const Simulation& live, const InsertionPlan& plan, long max_steps, double& dt, double& duration) {
   if (plan.needle < 0 || plan.needle >= live.numNeedles())
     throw InputError("", "predict.needle", "no needle " + std::to_string(plan.needle) + " (the scene has " +
                                                std::to_string(live.numNeedles()) + ")");
@@ -43,7 +48,7 @@ long checkPlan(const Simulation& live, const InsertionPlan& plan, long max_steps
       throw InputError("", key + ".direction", "must be a finite unit vector");
     if (!std::isfinite(p.roll)) throw InputError("", key + ".roll", "must be finite");
   }
-  dt = plan.dt == 0 ? live.scene().dt : plan.dt;
+  dt = plan.dt == 0 ? live.dt() : plan.dt;
   if (!(dt > 0) || !std::isfinite(dt)) throw InputError("", "predict.dt", "must be positive and finite (or 0: the scene's)");
   if (!std::isfinite(plan.duration) || plan.duration < 0)
     throw InputError("", "predict.duration", "must be finite and >= 0");
@@ -63,13 +68,13 @@ long checkPlan(const Simulation& live, const InsertionPlan& plan, long max_steps
 
 Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, long max_steps) {
   double dt = 0, duration = 0;
-  const long steps = checkPlan(live, plan, max_steps, dt, duration);
+  const long steps = requireRunnable(live, plan, max_steps, dt, duration);
   Prediction out;
-  auto t0 = std::chrono::steady_clock::now();
+  auto t0 = steadyNow();
   Simulation sim(live);
   out.copy_ms = msSince(t0);
-  t0 = std::chrono::steady_clock::now();
-  if (dt != sim.scene().dt) sim.setTimeStep(dt);
+  t0 = steadyNow();
+  if (dt != sim.dt()) sim.setTimeStep(dt);
   const double now = sim.time();
   // The plan replaces the needle's commands from now on; the other needles hold what they
   // were commanded (a copy of their trajectories).

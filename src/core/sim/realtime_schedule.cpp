@@ -12,6 +12,7 @@ void RealtimeSchedule::start(double now) {
   late_run_ = 0;
   late_times_.clear();
   skipped_times_.clear();
+  done_times_.clear();
 }
 
 long RealtimeSchedule::tick(double now) {
@@ -39,6 +40,7 @@ bool RealtimeSchedule::takeStep() {
 
 void RealtimeSchedule::stepDone(long step, double now) {
   ++steps_;
+  done_times_.push_back(now);
   if (now > start_ + (step + 1) * dt_ + 1e-9) {
     ++late_;
     late_times_.push_back(now);
@@ -51,6 +53,7 @@ void RealtimeSchedule::stepDone(long step, double now) {
 void RealtimeSchedule::prune(double now) {
   while (!late_times_.empty() && late_times_.front() < now - 1.0) late_times_.pop_front();
   while (!skipped_times_.empty() && skipped_times_.front() < now - 1.0) skipped_times_.pop_front();
+  while (!done_times_.empty() && done_times_.front() < now - 1.0) done_times_.pop_front();
 }
 
 RealtimeSchedule::Counts RealtimeSchedule::counts(double now) {
@@ -63,9 +66,11 @@ RealtimeSchedule::Counts RealtimeSchedule::counts(double now) {
   const double window = std::clamp(now - start_, dt_, 1.0);
   c.late_per_s = late_times_.size() / window;
   c.skipped_per_s = skipped_times_.size() / window;
-  const double due = window / dt_;
-  c.late_fraction = late_times_.size() / due;
-  c.skipped_fraction = skipped_times_.size() / due;
+  // Late: of the steps done in the window (catching up, more steps than periods can end in
+  // one second); skipped: of the ticks due in it.
+  const double done = std::max<double>(1.0, done_times_.size());
+  c.late_fraction = std::min(1.0, late_times_.size() / done);
+  c.skipped_fraction = std::min(1.0, skipped_times_.size() / (window / dt_));
   return c;
 }
 

@@ -7,6 +7,7 @@
 #include <sstream>
 
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/core/stopwatch.hpp"
 
 namespace needle_sim {
 
@@ -17,7 +18,7 @@ HexMesh buildTissueMesh(const TissueScene& t) {
   return HexMesh::mappedBlock(t.geometry.corners, t.cells);
 }
 
-Simulation::Simulation(const Scene& scene) : scene_(scene) {
+Simulation::Simulation(const Scene& scene) : scene_(scene), dt_(scene.dt) {
   for (const auto& n : scene.needles) needles_.push_back(std::make_unique<NeedleBody>(n, scene.solver));
   if (!scene.has_tissue) return;
   HexMesh mesh;
@@ -44,6 +45,7 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
   if (immersed) organ_ = std::make_unique<EmbeddedSurface>(scene.tissue.geometry.surface, tissue_->mesh());
   diag_ = (tissue_->mesh().boundsMax() - tissue_->mesh().boundsMin()).norm();
   embedProbes();
+  for (const auto& t : scene.targets) targets_.push_back({t.name, t.point, EmbeddedPoint{}, t.key, t.surface});
   embedTargets();
   PointLocator locator(tissue_->mesh());
   // A needle must start outside the tissue: puncture happens on the surface.
@@ -70,6 +72,7 @@ Simulation::Simulation(const Scene& scene) : scene_(scene) {
 
 Simulation::Simulation(const Simulation& o)
     : scene_(o.scene_),
+      dt_(o.dt_),
       probes_(o.probes_),
       targets_(o.targets_),
       target_start_(o.target_start_),
@@ -109,11 +112,11 @@ void Simulation::setTimeStep(double dt) {
   if (!(dt > 0) || !std::isfinite(dt)) throw std::invalid_argument("time step must be positive and finite");
   time_base_ = time();
   step_base_ = step_;
-  scene_.dt = dt;
+  dt_ = dt;
 }
 
 void Simulation::preStep() {
-  const auto t0 = std::chrono::steady_clock::now();
+  const auto t0 = steadyNow();
   shift_ = std::make_unique<BrainShift>(*scene_.brain_shift, scene_.tissue, organ_.get());
   const int t = scene_.brain_shift->target.empty() ? -1 : findTarget(scene_.brain_shift->target);
   BrainShiftResult total;
@@ -128,7 +131,8 @@ void Simulation::preStep() {
   for (int pass = 1;; ++pass) {
     // The coarse mesh's first pass only shows where to refine: its load scale (which the
     // refined meshes change severalfold, the clamps holding more nodes) is not solved for.
-    const BrainShiftResult r = shift_->apply(*tissue_, t >= 0 ? &targets_[t] : nullptr, scale, rough, !(rough && pass == 1));
+    const BrainShiftResult r =
+        shift_->apply(*tissue_, t >= 0 ? &targets_[t].point : nullptr, scale, rough, !(rough && pass == 1));
     const int iterations = total.newton_iterations + r.newton_iterations;
     const int factorizations = total.factorizations + r.factorizations;
     const int solves = total.load_solves + r.load_solves, updates = total.multiplier_updates + r.multiplier_updates;
@@ -164,7 +168,7 @@ void Simulation::preStep() {
     estimator_.reset();
     estimate_step_ = -1;
   }
-  total.ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  total.ms = msSince(t0);
   shift_result_ = total;
 }
 
@@ -197,34 +201,33 @@ void Simulation::setFractions(HexMesh& mesh, const std::vector<int>& cells) {
   mesh.setFractions(std::move(f));
 }
 
+EmbeddedPoint Simulation::embedPoint(const PointLocator& locator, const Vec3& p, const std::string& file,
+                                    const std::string& key, const std::string& what) const {
+  EmbeddedPoint ep;
+  const bool outside = immersed_ && !immersed_->insideTest().inside(p);
+  if (outside || !locator.locate(p, ep)) {
+    std::ostringstream m;
+    m << what << " (" << p.transpose() << ") lies outside the tissue" << (immersed_ ? " surface" : "");
+    throw InputError(file, key, m.str());
+  }
+  return ep;
+}
+
 void Simulation::embedProbes() {
   probes_.clear();
-  PointLocator locator(tissue_->mesh());
-  for (size_t i = 0; i < scene_.probes.size(); ++i) {
-    EmbeddedPoint ep;
-    const bool outside = immersed_ && !immersed_->insideTest().inside(scene_.probes[i].point);
-    if (outside || !locator.locate(scene_.probes[i].point, ep)) {
-      std::ostringstream m;
-      m << "point (" << scene_.probes[i].point.transpose() << ") lies outside the tissue";
-      throw InputError(scene_.file, "probes[" + std::to_string(i) + "].point", m.str());
-    }
-    probes_.push_back(ep);
-  }
+  const PointLocator locator(tissue_->mesh());
+  for (size_t i = 0; i < scene_.probes.size(); ++i)
+    probes_.push_back(
+        embedPoint(locator, scene_.probes[i].point, scene_.file, "probes[" + std::to_string(i) + "].point", "point"));
 }
 
 void Simulation::embedTargets() {
-  targets_.clear();
-  PointLocator locator(tissue_->mesh());
-  for (const auto& t : scene_.targets) {
-    EmbeddedPoint ep;
-    const bool outside = immersed_ && !immersed_->insideTest().inside(t.point);
-    if (outside || !locator.locate(t.point, ep)) {
-      std::ostringstream m;
-      m << (t.surface ? "the surface's centroid" : "point") << " (" << t.point.transpose()
-        << ") lies outside the tissue" << (immersed_ ? " surface" : "");
-      throw InputError(scene_.file, t.key + (t.surface ? ".surface" : ".point"), m.str());
-    }
-    targets_.push_back(ep);
+  const PointLocator locator(tissue_->mesh());
+  for (auto& t : targets_) {  // (again after a mesh change: by their planning positions)
+    const bool from_scene = t.key != "set_target";
+    t.point = embedPoint(locator, t.planned, from_scene ? scene_.file : "",
+                         from_scene ? t.key + (t.surface ? ".surface" : ".point") : "set_target.point",
+                         t.surface ? "the surface's centroid" : "point");
   }
 }
 
@@ -232,26 +235,14 @@ int Simulation::setTarget(const std::string& name, const Vec3& point) {
   if (name.empty()) throw InputError("", "set_target.name", "must not be empty");
   if (!tissue_) throw InputError("", "set_target", "the scene has no tissue");
   if (!point.allFinite()) throw InputError("", "set_target.point", "must be finite");
-  EmbeddedPoint ep;
-  const bool outside = immersed_ && !immersed_->insideTest().inside(point);
-  if (outside || !PointLocator(tissue_->mesh()).locate(point, ep)) {
-    std::ostringstream m;
-    m << "point (" << point.transpose() << ") lies outside the tissue" << (immersed_ ? " surface" : "");
-    throw InputError("", "set_target.point", m.str());
-  }
-  TargetScene t;
-  t.name = name;
-  t.key = "set_target";
-  t.point = point;
+  const EmbeddedPoint ep = embedPoint(PointLocator(tissue_->mesh()), point, "", "set_target.point", "point");
   int i = findTarget(name);
   if (i < 0) {
     i = numTargets();
-    scene_.targets.push_back(t);
-    targets_.push_back(ep);
+    targets_.push_back({name, point, ep, "set_target", nullptr});
     target_start_.push_back(Vec3::Zero());
   } else {
-    scene_.targets[i] = t;
-    targets_[i] = ep;
+    targets_[i] = {name, point, ep, "set_target", nullptr};
   }
   target_start_[i] = targetPosition(i);
   return i;
@@ -259,13 +250,17 @@ int Simulation::setTarget(const std::string& name, const Vec3& point) {
 
 int Simulation::findTarget(const std::string& name) const {
   for (int i = 0; i < numTargets(); ++i)
-    if (scene_.targets[i].name == name) return i;
+    if (targets_[i].name == name) return i;
   return -1;
 }
 
-Vec3 Simulation::targetPosition(int i) const { return targets_[i].interpolate(tissue_->mesh(), tissue_->positions()); }
+Vec3 Simulation::targetPosition(int i) const {
+  return targets_[i].point.interpolate(tissue_->mesh(), tissue_->positions());
+}
 
-Vec3 Simulation::targetVelocity(int i) const { return targets_[i].interpolate(tissue_->mesh(), tissue_->velocities()); }
+Vec3 Simulation::targetVelocity(int i) const {
+  return targets_[i].point.interpolate(tissue_->mesh(), tissue_->velocities());
+}
 
 void Simulation::applyPersistentLoads() {
   if (!shift_) return;
@@ -323,22 +318,20 @@ AdaptationResult Simulation::coarsenElements(const std::vector<int>& elements) {
 }
 
 void Simulation::adaptMesh() {
-  using clock = std::chrono::steady_clock;
-  auto ms = [](clock::time_point a, clock::time_point b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
-  const auto t0 = clock::now();
+  const auto t0 = steadyNow();
   const ErrorEstimate& est = errorEstimate();
-  const auto t1 = clock::now();
+  const auto t1 = steadyNow();
   const AdaptationResult r = adaptation_->adapt(est);
-  const auto t2 = clock::now();
+  const auto t2 = steadyNow();
   if (r.changed) rebuildTissue();
-  const auto t3 = clock::now();
+  const auto t3 = steadyNow();
   last_.adapted = true;
   last_.mesh_changed = r.changed;
   last_.refined = r.refined;
   last_.coarsened = r.coarsened;
-  last_.estimate_ms = ms(t0, t1);
-  last_.mark_refine_ms = ms(t1, t2);
-  last_.rebuild_ms = ms(t2, t3);
+  last_.estimate_ms = msBetween(t0, t1);
+  last_.mark_refine_ms = msBetween(t1, t2);
+  last_.rebuild_ms = msBetween(t2, t3);
 }
 
 Vec3 Simulation::probeDisplacement(int i) const {
@@ -394,25 +387,26 @@ void Simulation::checkState() const {
 const StepStats& Simulation::step() {
   const long k = step_ + 1;
   try {
-    const bool dynamic = scene_.solver.mode == SolverScene::Mode::Dynamic;
+    const bool dynamic = scene_.solver.mode == SolverSettings::Mode::Dynamic;
     last_ = StepStats{};
     auto add = [&](const StepStats& s) { last_.accumulate(s); };
     if (interaction_) {
       // free motion of every body, constraint solve and corrections, commit, law updates
-      const double h = scene_.dt;
+      const double h = dt_;
       add(tissue_->freeMotion(h));
       for (auto& nd : needles_) add(nd->freeMotion(time(), h));
       const InteractionStats is = interaction_->solve(h);
       last_.constraint_points = is.points;
       last_.constraint_iterations = is.iterations;
       last_.constraint_residual = is.residual;
+      last_.constraint_converged = is.converged;
       last_.constraint_ms = is.ms;
       tissue_->commit(h);
       for (auto& nd : needles_) nd->commit(time(), h);
       interaction_->afterCommit();
     } else {
-      if (tissue_) add(dynamic ? tissue_->stepDynamic(scene_.dt) : tissue_->solveStatic());
-      for (auto& nd : needles_) add(dynamic ? nd->stepDynamic(time(), scene_.dt) : nd->solveStatic(time() + scene_.dt));
+      if (tissue_) add(dynamic ? tissue_->stepDynamic(dt_) : tissue_->solveStatic());
+      for (auto& nd : needles_) add(dynamic ? nd->stepDynamic(time(), dt_) : nd->solveStatic(time() + dt_));
     }
   } catch (const NumericalError& e) {
     throw NumericalError(k, std::string(e.what()) + " (step " + std::to_string(k) + ")");

@@ -3,15 +3,11 @@
 #include <chrono>
 
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/core/stopwatch.hpp"
 #include "needle_sim/solver/pcg.hpp"
 
 namespace needle_sim {
 
-namespace {
-double msSince(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
-}  // namespace
 
 SystemSolver::SystemSolver(const CorotationalHexModel& model, const DofMap& dofs,
                            const LinearSolverSettings& s)
@@ -44,7 +40,7 @@ void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const Ve
 }
 
 void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st) {
-  auto t0 = std::chrono::steady_clock::now();
+  auto t0 = steadyNow();
   assembler_.setZero();
   hex8::Mat24 Ke;
   for (int e = 0; e < model_.numElements(); ++e) {
@@ -55,7 +51,7 @@ void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, Linea
     for (size_t i = 0; i < extra_->element.size(); ++i) assembler_.addElement(extra_->element[i], extra_->K[i].data(), c_k);
   if (c_m != 0.0) assembler_.addDiagonal(mass_free, c_m);
   st.assemble_ms += msSince(t0);
-  t0 = std::chrono::steady_clock::now();
+  t0 = steadyNow();
   if (!chol_.analyzed()) chol_.analyze(assembler_.matrix());
   const bool ok = chol_.factorize(assembler_.matrix());
   st.factor_ms += msSince(t0);
@@ -76,7 +72,7 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
     refactor(mass_free, c_m, c_k, st);
   ++calls_since_factor_;
 
-  auto t0 = std::chrono::steady_clock::now();
+  auto t0 = steadyNow();
   if (direct) {
     chol_.solve(b, x);
     st.solve_ms = msSince(t0);
@@ -92,7 +88,7 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
     // The stale preconditioner is too far off: refresh it and solve again.
     st.solve_ms += msSince(t0);
     refactor(mass_free, c_m, c_k, st);
-    t0 = std::chrono::steady_clock::now();
+    t0 = steadyNow();
     const int first = r.iterations;
     r = pcg(A, M, b, x, tol, settings_.max_iterations);
     r.iterations += first;

@@ -1,17 +1,12 @@
 #pragma once
-// The brain-shift pre-step of the DBS scenario (DESIGN.md §4): after the burr hole, CSF
+// The brain-shift pre-step of the DBS scenario (doc/method.md, "Brain shift"): after the burr hole, CSF
 // drains and the brain above the CSF level loses its buoyancy. Gravity on that part (or on
 // all of the brain) deforms it quasi-statically, held by the clamped regions (brainstem,
 // optic nerves) and kept inside the skull.
 //
-// Skull contact is unilateral, between the embedded organ-surface vertices and either the
-// undeformed surface offset outwards by `gap` or a rigid skull surface; both are taken as
-// the tangent plane at the vertex's rest position (displacements of millimetres against
-// curvature radii of centimetres):
-//     g_v(x) = n_v . (p_v(x) - X_v) - c_v <= 0,    p_v = sum_a w_a x_a.
-// It is solved by an augmented Lagrangian: Newton on the penalised energy with
-// multipliers lambda_v >= 0, then lambda_v <- max(0, lambda_v + k_v g_v), until the
-// penetration is below the tolerance. After the pre-step, the skull's reaction forces are
+// The skull keeps the brain in (skull_contact.hpp): Newton on the penalised energy, then a
+// multiplier update, until the penetration is below the tolerance. After the pre-step, the
+// skull's reaction forces are
 // kept as constant loads with the shift load, so the shifted brain is the equilibrium the
 // insertion starts from. With `skull.support` (default), the skull also keeps holding the
 // brain where it touched it: each vertex in contact gets a linear spring along the skull's
@@ -26,11 +21,16 @@
 // With `target_shift`, the load scale is solved for with the displacements under
 // displacement control (TissueBody::LoadControl) until the target moves by that distance
 // (the paper reproduces a measured shift of about 6.5 mm).
+
+#include <optional>
+#include <string>
 #include <vector>
 
+#include "needle_sim/brain/brain_shift_settings.hpp"
+#include "needle_sim/brain/skull_contact.hpp"
 #include "needle_sim/geometry/embedded_surface.hpp"
-#include "needle_sim/scene/scene.hpp"
-#include "needle_sim/sim/tissue_body.hpp"
+#include "needle_sim/tissue/tissue_body.hpp"
+#include "needle_sim/tissue/tissue_parameters.hpp"
 
 namespace needle_sim {
 
@@ -57,7 +57,7 @@ class BrainShift {
  public:
   // organ: the embedded organ surface (immersed geometry) or nullptr (contact then
   // disabled). target: the tracked material point, or nullptr.
-  BrainShift(const BrainShiftScene& scene, const TissueScene& tissue, const EmbeddedSurface* organ);
+  BrainShift(const BrainShiftSettings& settings, const TissueParameters& tissue, const EmbeddedSurface* organ);
 
   // Gravity load of the shift at unit scale on `body`'s mesh (3n).
   VecX unitLoad(const TissueBody& body) const;
@@ -71,32 +71,25 @@ class BrainShift {
   BrainShiftResult apply(TissueBody& body, const EmbeddedPoint* target, double start_scale = 1.0, bool rough = false,
                          bool calibrate = true);
   // The organ surface embedded in a new mesh (same vertices): contact state carried over.
-  void rebind(const EmbeddedSurface* organ) { organ_ = organ; }
-  // Skull reaction per organ-surface vertex at the end of apply() (zero without contact).
-  const std::vector<Vec3>& skullForces() const { return skull_force_; }
+  void rebind(const EmbeddedSurface* organ) {
+    organ_ = organ;
+    if (skull_ && organ) skull_->rebind(*organ);
+  }
+  // Skull reaction per organ-surface vertex at the end of apply() (empty without contact).
+  const std::vector<Vec3>& skullForces() const;
   // The frozen skull reactions as nodal forces on a (possibly new) mesh.
   VecX skullLoad(const TissueBody& body, const EmbeddedSurface& organ) const;
   // The skull support springs (see above) on a (possibly new) mesh: their stiffness blocks
   // and the constant force of their anchors, so that their force is anchorLoad - K_s x.
   ElementBlocks supportStiffness(const EmbeddedSurface& organ) const;
   VecX supportAnchorLoad(const TissueBody& body, const EmbeddedSurface& organ) const;
-  bool hasSupport() const { return scene_.skull_support && !anchor_.empty(); }
+  bool hasSupport() const { return settings_.skull_support && skull_ && skull_->touching(); }
 
  private:
-  void contact(const TissueBody& body, const VecX& x, VecX& f, ElementBlocks& K) const;
-  double penetration(const TissueBody& body, int& active) const;
-
-  BrainShiftScene scene_;
+  BrainShiftSettings settings_;
   double density_;
   const EmbeddedSurface* organ_;
-  std::vector<Vec3> normal_;      // outward unit normal per vertex (rest)
-  std::vector<Vec3> rest_;        // interpolated rest position per vertex
-  std::vector<double> offset_;    // c_v
-  std::vector<double> k_;         // penalty per vertex
-  std::vector<double> lambda_;    // multipliers
-  std::vector<Vec3> skull_force_;
-  std::vector<int> touching_;     // vertices in contact at the end of apply()
-  std::vector<Vec3> anchor_;      // their shifted positions
+  std::optional<SkullContact> skull_;  // with an organ surface and skull contact
 };
 
 }  // namespace needle_sim

@@ -14,9 +14,10 @@
 
 #include "needle_sim/needle/base_trajectory.hpp"
 #include "needle_sim/needle/corotational_beam.hpp"
-#include "needle_sim/scene/scene.hpp"
-#include "needle_sim/sim/tissue_body.hpp"
+#include "needle_sim/core/step_stats.hpp"
+#include "needle_sim/needle/needle_parameters.hpp"
 #include "needle_sim/solver/cholmod_solver.hpp"
+#include "needle_sim/solver/solver_settings.hpp"
 #include "needle_sim/solver/dof_map.hpp"
 #include "needle_sim/solver/symmetric_assembler.hpp"
 
@@ -24,7 +25,7 @@ namespace needle_sim {
 
 class NeedleBody {
  public:
-  NeedleBody(const NeedleScene& needle, const SolverScene& solver);
+  NeedleBody(const NeedleParameters& needle, const SolverSettings& solver);
 
   const std::string& name() const { return name_; }
   const CorotationalBeam& beam() const { return beam_; }
@@ -74,7 +75,7 @@ class NeedleBody {
   std::string name_;
   CorotationalBeam beam_;
   BaseTrajectory trajectory_;
-  SolverScene settings_;
+  SolverSettings settings_;
   BeamState state_;
   VecX v_, mass_, mass_free_, f_ext_;
   DofMap dofs_;

@@ -1,20 +1,17 @@
-#include "needle_sim/sim/needle_body.hpp"
+#include "needle_sim/needle/needle_body.hpp"
 
-#include <chrono>
 #include <cmath>
 #include <cstdio>
 
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/core/stopwatch.hpp"
 
 namespace needle_sim {
 
 namespace {
-double msSince(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
 
-BeamSection sectionOf(const NeedleScene& n) { return {n.radius, n.inner_radius}; }
-BeamMaterial materialOf(const NeedleScene& n) { return {n.young, n.poisson, n.density}; }
+BeamSection sectionOf(const NeedleParameters& n) { return {n.radius, n.inner_radius}; }
+BeamMaterial materialOf(const NeedleParameters& n) { return {n.young, n.poisson, n.density}; }
 
 std::vector<char> basePrescribed(int dofs) {
   std::vector<char> p(dofs, 0);
@@ -41,7 +38,7 @@ double weightedNorm(const VecX& r_free, const DofMap& dofs, double L) {
 }
 }  // namespace
 
-NeedleBody::NeedleBody(const NeedleScene& n, const SolverScene& solver)
+NeedleBody::NeedleBody(const NeedleParameters& n, const SolverSettings& solver)
     : name_(n.name),
       beam_(n.elements, n.length, sectionOf(n), materialOf(n), n.base_position, n.base_direction),
       trajectory_(BasePose{n.base_position, n.base_direction, n.base_roll}),
@@ -83,12 +80,12 @@ void NeedleBody::placeAt(double t) {
 Vec3 NeedleBody::tipDirection() const { return state_.q.back() * beam_.restDirection(); }
 
 bool NeedleBody::assembleAndFactor(const std::vector<Mat12>& Ke, double c_m, double c_k, StepStats& st) {
-  auto t0 = std::chrono::steady_clock::now();
+  auto t0 = steadyNow();
   assembler_.setZero();
   for (int e = 0; e < beam_.numElements(); ++e) assembler_.addElement(e, Ke[e].data(), c_k);
   if (c_m != 0) assembler_.addDiagonal(mass_free_, c_m);
   st.assemble_ms += msSince(t0);
-  t0 = std::chrono::steady_clock::now();
+  t0 = steadyNow();
   if (!chol_.analyzed()) chol_.analyze(assembler_.matrix());
   const bool ok = chol_.factorize(assembler_.matrix());
   st.factor_ms += msSince(t0);
@@ -111,7 +108,7 @@ StepStats NeedleBody::stepDynamic(double t, double h) {
 
 StepStats NeedleBody::freeMotion(double t, double h) {
   StepStats st;
-  auto t0 = std::chrono::steady_clock::now();
+  auto t0 = steadyNow();
   const double alpha = settings_.rayleigh_mass, beta = settings_.rayleigh_stiffness;
   const double c_m = 1 + h * alpha, c_k = h * beta + h * h;
   const int n = beam_.numDofs(), ne = beam_.numElements();
@@ -140,7 +137,7 @@ StepStats NeedleBody::freeMotion(double t, double h) {
 
   if (!assembleAndFactor(Ke_, c_m, c_k, st))
     throw NumericalError(-1, "needle '" + name_ + "': system matrix is not positive definite");
-  t0 = std::chrono::steady_clock::now();
+  t0 = steadyNow();
   chol_.solve(b, dv_free);
   for (int k = 0; k < dofs_.numFree(); ++k) dv_[dofs_.freeToFull()[k]] = dv_free[k];
   st.solve_ms = msSince(t0);
@@ -196,7 +193,7 @@ StepStats NeedleBody::solveStatic(double t) {
   dofs_.gather(f_ext_, fe_free);
   double ref = weightedNorm(fe_free, dofs_, L);
   for (int it = 0; it <= settings_.static_max_iterations; ++it) {
-    auto t0 = std::chrono::steady_clock::now();
+    auto t0 = steadyNow();
     beam_.internalForce(state_, r);
     r += f_ext_;
     dofs_.gather(r, r_free);
@@ -223,7 +220,7 @@ StepStats NeedleBody::solveStatic(double t) {
       if (!assembleAndFactor(Ke_, 0.0, 1.0, st))
         throw NumericalError(-1, "needle '" + name_ + "': stiffness matrix is not positive definite");
     }
-    t0 = std::chrono::steady_clock::now();
+    t0 = steadyNow();
     chol_.solve(r_free, d_free);
     // Limit the largest nodal rotation per iteration to 0.5 rad (a damped Newton step far
     // from equilibrium, e.g. the first step under a large load).

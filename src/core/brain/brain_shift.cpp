@@ -1,0 +1,182 @@
+#include "needle_sim/brain/brain_shift.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/core/stopwatch.hpp"
+#include "needle_sim/fem/hex8.hpp"
+
+namespace needle_sim {
+
+namespace {
+// Relative residual of a rough solve (a pass of the adaptive pre-step that only feeds the
+// error estimate).
+constexpr double kRoughTolerance = 1e-3;
+}  // namespace
+
+BrainShift::BrainShift(const BrainShiftSettings& settings, const TissueParameters& tissue, const EmbeddedSurface* organ)
+    : settings_(settings), density_(settings.density.value_or(tissue.material.density)), organ_(organ) {
+  if (organ_ && settings_.skull_contact)
+    skull_.emplace(*organ_, settings_.skull.get(), settings_.gap, tissue.material.young);
+}
+
+const std::vector<Vec3>& BrainShift::skullForces() const {
+  static const std::vector<Vec3> none;
+  return skull_ ? skull_->reactions() : none;
+}
+
+VecX BrainShift::unitLoad(const TissueBody& body) const {
+  const HexMesh& mesh = body.mesh();
+  const CorotationalHexModel& model = body.model();
+  VecX f = VecX::Zero(mesh.numDofs());
+  const Vec3 up = -settings_.gravity.normalized();
+  const Vec3 b = density_ * settings_.gravity;  // N/m^3
+  for (int e = 0; e < mesh.numElements(); ++e) {
+    // Only the part above the CSF level has lost its buoyancy: the fraction of the cell
+    // above the plane (sampled in cells it cuts, so that coarse and refined meshes carry the
+    // same load).
+    double above = 1;
+    if (!settings_.all) {
+      const Eigen::Matrix<double, 8, 3> X = mesh.elementCorners(e);
+      int n_above = 0;
+      for (int a = 0; a < 8; ++a) n_above += up.dot(X.row(a).transpose() - settings_.csf_point) > 0;
+      if (n_above == 0) continue;  // still buoyant in CSF
+      if (n_above < 8) {
+        constexpr int kS = 16;
+        int hits = 0;
+        for (int i = 0; i < kS; ++i)
+          for (int j = 0; j < kS; ++j)
+            for (int k = 0; k < kS; ++k) {
+              const Vec3 xi((i + 0.5) / kS, (j + 0.5) / kS, (k + 0.5) / kS);
+              const Vec3 p = X.transpose() * hex8::shape(2 * xi - Vec3::Ones());
+              hits += up.dot(p - settings_.csf_point) > 0;
+            }
+        above = static_cast<double>(hits) / (kS * kS * kS);
+      }
+    }
+    const auto& nv = model.reference(e).node_volume;  // weighted by the volume fraction
+    for (int a = 0; a < 8; ++a) node3(f, mesh.element(e)[a]) += above * nv[a] * b;
+  }
+  return f;
+}
+
+BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target, double start_scale, bool rough,
+                                   bool calibrate) {
+  const auto t0 = steadyNow();
+  BrainShiftResult res;
+  const VecX unit = unitLoad(body);
+  const bool with_contact = skull_ && skull_->numVertices() > 0;
+  if (with_contact) skull_->setRest(body.mesh());
+  // 0.1 % of the gap (1 % on a rough pass)
+  const double pen_tol = (rough ? 1e-2 : 1e-3) * std::max(settings_.gap, 1e-3 * SkullContact::cellSize(body.mesh()));
+  TissueBody::ExtraForce extra;
+  if (with_contact)
+    extra = [this, &body](const VecX& x, VecX& f, ElementBlocks& K) { skull_->addForces(body.mesh(), x, f, K); };
+
+  double applied = 0;  // scale of the load now in the body
+  const double tol = rough ? std::max(settings_.tolerance, kRoughTolerance) : settings_.tolerance;
+  // Newton solves with multiplier updates until the penetration is within tolerance.
+  // loose: to the rough tolerances (the steps towards target_shift's scale).
+  auto solveContact = [&](bool loose, TissueBody::LoadControl* control) {
+    loose = loose || rough;
+    for (int pass = 0; pass < (loose ? 2 : 20); ++pass) {
+      const StepStats st = body.solveStatic(extra, loose ? std::max(tol, kRoughTolerance) : tol, 50, control);
+      res.newton_iterations += st.newton_iterations;
+      res.factorizations += st.factorizations;
+      res.factor_ms += st.factor_ms + st.assemble_ms;
+      res.solve_ms += st.solve_ms + st.forces_ms;
+      if (!with_contact) break;
+      int active = 0;
+      const double pen = skull_->penetration(body.mesh(), body.positions(), active);
+      if (pen <= pen_tol) break;
+      ++res.multiplier_updates;
+      skull_->updateMultipliers(body.mesh(), body.positions());
+    }
+    ++res.load_solves;
+  };
+  auto setScale = [&](double scale) {
+    body.addExternalForce((scale - applied) * unit);
+    applied = scale;
+  };
+  auto targetMotion = [&]() { return target ? Vec3(target->interpolate(body.mesh(), body.positions()) - target->rest) : Vec3::Zero(); };
+
+  try {
+    const bool at_rest = (body.positions() - body.mesh().restPositions()).squaredNorm() == 0;
+    const bool control = calibrate && settings_.target_shift && target;
+    // From rest, the load in steps (the controlled solve needs the target to have moved to
+    // know its direction); from an earlier shift (a refined mesh), the controlled solve at once.
+    const int steps = at_rest ? settings_.load_steps : control ? 0 : 1;
+    if (steps == 0) setScale(start_scale);
+    for (int k = 1; k <= steps; ++k) {
+      setScale(start_scale * k / steps);
+      solveContact(control, nullptr);  // rough when the scale is solved for next
+    }
+    res.load_scale = applied;
+    if (control) {
+      // target_shift: displacement control, |d(x)| = want with the load scale unknown (the
+      // bordered Newton of TissueBody::solveStatic), to 1 % on a rough pass, 0.1 % else.
+      const double want = *settings_.target_shift;
+      const double accuracy = rough ? 1e-2 : 1e-3;
+      const HexMesh& mesh = body.mesh();
+      const auto& el = mesh.element(target->element);
+      TissueBody::LoadControl lc;
+      lc.unit = &unit;
+      lc.scale = applied;
+      lc.tolerance = 0.25 * accuracy * want;
+      lc.constraint = [&](const VecX& x, VecX& g) {
+        const Vec3 d = target->interpolate(mesh, x) - target->rest;
+        const double n = d.norm();
+        if (!(n > 0)) throw NumericalError(-1, "brain shift: the target does not move with the load");
+        for (int a = 0; a < 8; ++a) node3(g, el[a]) += target->weights[a] * d / n;
+        return n - want;
+      };
+      try {
+        solveContact(rough, &lc);
+      } catch (const NumericalError& e) {
+        throw NumericalError(-1, "brain shift: could not reach target_shift " + std::to_string(want) + " m (" +
+                                     e.what() + ")");
+      }
+      applied = lc.scale;
+      const double got = targetMotion().norm();
+      if (std::abs(got - want) > accuracy * want)
+        throw NumericalError(-1, "brain shift: could not reach target_shift " + std::to_string(want) + " m (got " +
+                                     std::to_string(got) + " m)");
+      res.load_scale = applied;
+    }
+  } catch (const NumericalError& e) {
+    throw NumericalError(0, std::string(e.what()) + " (brain-shift pre-step)");
+  }
+
+  // Freeze the skull reactions as loads: the shifted state is then an equilibrium without
+  // the contact terms.
+  if (with_contact) {
+    Vec3 total;
+    body.addExternalForce(skull_->freeze(body.mesh(), body.positions(), total));
+    res.skull_force = total.norm();
+    res.max_penetration = skull_->penetration(body.mesh(), body.positions(), res.contacts);
+  }
+  if (target) res.target_displacement = target->interpolate(body.mesh(), body.positions()) - target->rest;
+  res.max_displacement = 0;
+  const VecX u = body.displacements();
+  for (int i = 0; i < body.mesh().numNodes(); ++i) res.max_displacement = std::max(res.max_displacement, node3(u, i).norm());
+  res.done = true;
+  res.passes = 1;
+  res.dofs = body.mesh().numDofs();
+  res.ms = msSince(t0);
+  return res;
+}
+
+VecX BrainShift::skullLoad(const TissueBody& body, const EmbeddedSurface& organ) const {
+  return skull_ ? skull_->frozenLoad(body.mesh(), organ) : VecX::Zero(body.mesh().numDofs());
+}
+
+ElementBlocks BrainShift::supportStiffness(const EmbeddedSurface& organ) const {
+  return hasSupport() ? skull_->supportStiffness(organ) : ElementBlocks{};
+}
+
+VecX BrainShift::supportAnchorLoad(const TissueBody& body, const EmbeddedSurface& organ) const {
+  return hasSupport() ? skull_->supportAnchorLoad(body.mesh(), organ) : VecX::Zero(body.mesh().numDofs());
+}
+
+}  // namespace needle_sim

@@ -1,0 +1,156 @@
+#include "needle_sim/tissue/tissue_body.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/core/stopwatch.hpp"
+#include "needle_sim/tissue/tissue_loads.hpp"
+
+namespace needle_sim {
+
+TissueBody::TissueBody(const TissueBody& o)
+    : mesh_(std::make_unique<HexMesh>(*o.mesh_)),
+      settings_(o.settings_),
+      dofs_(o.dofs_),
+      rest_(o.rest_),
+      x_(o.x_),
+      v_(o.v_),
+      f_ext_(o.f_ext_),
+      mass_(o.mass_),
+      mass_free_(o.mass_free_),
+      scene_f_ext_(o.scene_f_ext_),
+      dv_free_(o.dv_free_),
+      support_(o.support_),
+      columns_(o.columns_) {
+  model_ = std::make_unique<CorotationalHexModel>(*o.model_, *mesh_);
+  solver_ = std::make_unique<SystemSolver>(*o.solver_, *model_, dofs_);
+  solver_->setExtraStiffness(supportOrNull());
+}
+
+TissueBody::TissueBody(HexMesh mesh, const TissueParameters& tissue, const SolverSettings& solver,
+                       const std::string& source, const std::vector<std::vector<std::pair<int, double>>>& node_hanging)
+    : mesh_(std::make_unique<HexMesh>(std::move(mesh))), settings_(solver) {
+  model_ = std::make_unique<CorotationalHexModel>(*mesh_, tissue.material);
+  const int n = mesh_->numNodes();
+  rest_ = mesh_->restPositions();
+  x_ = rest_;
+  v_ = VecX::Zero(3 * n);
+  const std::vector<char> prescribed = prescribeDirichlet(*mesh_, tissue.dirichlet, source, x_);
+  if (node_hanging.empty()) {
+    dofs_ = DofMap(prescribed);
+  } else {
+    std::vector<std::vector<std::pair<int, double>>> hanging(3 * n);
+    for (int i = 0; i < n && i < static_cast<int>(node_hanging.size()); ++i)
+      for (const auto& [m, w] : node_hanging[i])
+        for (int d = 0; d < 3; ++d) hanging[3 * i + d].emplace_back(3 * m + d, w);
+    dofs_ = DofMap(prescribed, hanging);
+    dofs_.interpolateHanging(x_);  // follow prescribed masters
+  }
+  const VecX& vol = model_->nodalVolume();
+  mass_.resize(3 * n);
+  for (int i = 0; i < n; ++i) mass_.segment<3>(3 * i).setConstant(tissue.material.density * vol[i]);
+  f_ext_ = tissueLoads(*mesh_, vol, tissue, source);
+  scene_f_ext_ = f_ext_;
+  dofs_.gather(mass_, mass_free_);
+  solver_ = std::make_unique<SystemSolver>(*model_, dofs_, settings_.linear);
+  dv_free_.setZero(dofs_.numFree());
+}
+
+void TissueBody::accumulate(StepStats& s, const LinearSolveStats& l) const {
+  s.assemble_ms += l.assemble_ms;
+  s.factor_ms += l.factor_ms;
+  s.solve_ms += l.solve_ms;
+  s.linear_iterations += l.iterations;
+  s.factorizations += l.refactored ? 1 : 0;
+  s.linear_residual = std::max(s.linear_residual, l.relative_residual);
+}
+
+StepStats TissueBody::stepDynamic(double h) {
+  StepStats st = freeMotion(h);
+  commit(h);
+  return st;
+}
+
+void TissueBody::commit(double h) {
+  VecX dv;
+  dofs_.scatter(dv_free_, dv);
+  v_ += dv;  // prescribed entries of dv are zero and v stays zero there
+  x_ += h * v_;
+}
+
+void TissueBody::complianceBlock(const std::vector<int>& free_dofs, Eigen::MatrixXd& C) const {
+  columns_.prepare(free_dofs, solver_->factor(), dofs_.numFree());
+  const auto k = static_cast<Eigen::Index>(free_dofs.size());
+  C.resize(k, k);
+  for (Eigen::Index j = 0; j < k; ++j) {
+    const VecX& col = columns_.column(free_dofs[j]);
+    for (Eigen::Index i = 0; i < k; ++i) C(i, j) = col[free_dofs[i]];
+  }
+  C = (0.5 * (C + C.transpose())).eval();
+}
+
+void TissueBody::addInverseColumns(const std::vector<int>& free_dofs, const VecX& c) {
+  columns_.prepare(free_dofs, solver_->factor(), dofs_.numFree());
+  for (size_t j = 0; j < free_dofs.size(); ++j)
+    if (c[static_cast<Eigen::Index>(j)] != 0)
+      dv_free_.noalias() += c[static_cast<Eigen::Index>(j)] * columns_.column(free_dofs[j]);
+}
+
+StepStats TissueBody::freeMotion(double h) {
+  StepStats st;
+  const auto t0 = steadyNow();
+  const double alpha = settings_.rayleigh_mass, beta = settings_.rayleigh_stiffness;
+  model_->updateRotations(x_);
+  VecX f = f_ext_;
+  model_->addInternalForce(x_, f);
+  // f - h K v - C v = f - (h + beta) K v - alpha M v
+  model_->addStiffnessProduct(v_, -(h + beta), f);
+  addSupportProduct(x_, 1.0, f);
+  addSupportProduct(v_, h + beta, f);
+  f.array() -= alpha * mass_.array() * v_.array();
+  VecX b;
+  dofs_.gather(f, b);
+  b *= h;
+  st.forces_ms = msSince(t0);
+
+  const auto l = solver_->solve(mass_free_, 1 + h * alpha, h * beta + h * h, b, dv_free_);
+  accumulate(st, l);
+  return st;
+}
+
+double TissueBody::kineticEnergy() const { return 0.5 * (mass_.array() * v_.array().square()).sum(); }
+
+void TissueBody::setState(const VecX& x, const VecX& v) {
+  for (int i = 0; i < dofs_.numFull(); ++i)
+    if (!dofs_.prescribed(i)) {
+      x_[i] = x[i];
+      v_[i] = v[i];
+    }
+  dofs_.interpolateHanging(x_);
+  dofs_.interpolateHanging(v_);
+}
+
+void TissueBody::setSupport(ElementBlocks blocks) {
+  support_ = std::move(blocks);
+  solver_->setExtraStiffness(supportOrNull());
+  solver_->invalidate();
+  columns_.clear();
+}
+
+void TissueBody::addSupportProduct(const VecX& y, double c, VecX& f) const {
+  Eigen::Matrix<double, 24, 1> ye;
+  for (size_t i = 0; i < support_.element.size(); ++i) {
+    const auto& el = mesh_->element(support_.element[i]);
+    for (int a = 0; a < 8; ++a) ye.segment<3>(3 * a) = node3(y, el[a]);
+    const Eigen::Matrix<double, 24, 1> w = support_.K[i] * ye;
+    for (int a = 0; a < 8; ++a) node3(f, el[a]) -= c * w.segment<3>(3 * a);
+  }
+}
+
+void TissueBody::setPrescribedPositions(const VecX& x) {
+  for (int i = 0; i < dofs_.numFull(); ++i)
+    if (dofs_.prescribed(i)) x_[i] = x[i];
+  dofs_.interpolateHanging(x_);
+}
+}  // namespace needle_sim

@@ -1,0 +1,140 @@
+// SimulatorRos: what every step sends (status, wrenches, targets; built on the output
+// thread from a StepFrame of numbers), the display outputs at their rate, and diagnostics.
+#include <geometry_msgs/PointStamped.h>
+#include <geometry_msgs/WrenchStamped.h>
+#include <needle_sim/SimStatus.h>
+#include <needle_sim/TargetState.h>
+
+#include <algorithm>
+#include <cstdio>
+
+#include "conversions.hpp"
+#include "display_outputs.hpp"
+#include "insert_action.hpp"
+#include "limits_reconfigure.hpp"
+#include "needle_sim/ros/simulator_ros.hpp"
+#include "node_parameters.hpp"
+#include "output_queue.hpp"
+
+namespace needle_sim {
+
+void SimulatorRos::publishStep(double ms) {
+  const ros::WallTime wall = ros::WallTime::now();
+  rtf_window_.emplace_back(wall, sim_->time());
+  while (rtf_window_.size() > 2 && (wall - rtf_window_.front().first).toSec() > 1.0) rtf_window_.pop_front();
+  StepFrame f;
+  f.stamp = ros::Time::now();
+  f.names = names_;
+  f.failure = failure_;
+  f.state = !failure_.empty() ? "failed" : (!commanded_ && params_->command_source != "scene") ? "waiting" : "running";
+  f.step_ms = ms;
+  f.step_ms_max = step_ms_max_;
+  f.publish_ms = publish_ms_;
+  const double dw = (rtf_window_.back().first - rtf_window_.front().first).toSec();
+  f.rtf = dw > 0 ? (rtf_window_.back().second - rtf_window_.front().second) / dw : 0.0;
+  {
+    std::lock_guard<std::mutex> lk(queue_mutex_);
+    const double clock = origin_.isZero() ? 0.0 : (f.stamp - origin_).toSec();
+    f.deadlines = schedule_.counts(clock);
+    if (!params_->as_fast_as_possible && !origin_.isZero()) f.lag = std::max(0.0, clock - sim_->time());
+  }
+  f.guard = guard_->counts();
+  f.rejected = guard_->rejected();
+  f.clamped = guard_->limited();
+  f.display_range = display_->range();
+  if (failure_.empty()) {  // never publish a state that failed: the status alone
+    observe(*sim_, obs_);
+    f.obs = obs_;
+    f.primary_target = std::min(primary_target_, sim_->numTargets() - 1);
+    f.send_target_point = sim_->numTargets() > 0 && target_pub_.getNumSubscribers() > 0;
+    f.send_target_state = sim_->numTargets() > 0 && target_state_pub_.getNumSubscribers() > 0;
+    if (action_) action_->update(obs_);
+  } else {
+    f.obs.step = sim_->stepIndex();
+    f.obs.time = sim_->time();
+    f.obs.dofs = sim_->numDofs();
+    if (action_) action_->abort("numerical failure: " + failure_);
+  }
+  out_->post([this, f = std::move(f)] { sendStep(f); });
+  if (!failure_.empty()) return;
+  if ((wall - last_display_).toSec() >= 1.0 / display_->rate()) {
+    last_display_ = wall;
+    display_->publish(*sim_, names_, primary_target_);
+  }
+}
+
+void SimulatorRos::sendStep(const StepFrame& f) {
+  status_pub_.publish(statusMessage(f, params_->tissue_frame));
+  if (!f.failure.empty()) return;
+  for (size_t i = 0; i < f.obs.needles.size(); ++i)
+    wrench_pubs_[i].publish(wrenchMessage(f, static_cast<int>(i), params_->wrench_frame == "base", params_->tissue_frame));
+  if (f.send_target_point) {
+    geometry_msgs::PointStamped ps;
+    ps.header.stamp = f.stamp;
+    ps.header.frame_id = params_->tissue_frame;
+    ps.point = toPoint(f.obs.targets[f.primary_target].position);
+    target_pub_.publish(ps);
+  }
+  if (f.send_target_state)
+    for (auto& m : targetStates(f, params_->tissue_frame)) target_state_pub_.publish(m);
+}
+
+void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
+  std::lock_guard<std::mutex> lk(sim_mutex_);
+  const auto counts = guard_->counts();
+  const uint64_t rej = guard_->rejected(), lim = guard_->limited();
+  RealtimeSchedule::Counts d;
+  {
+    std::lock_guard<std::mutex> q(queue_mutex_);
+    d = schedule_.counts(origin_.isZero() ? 0.0 : (ros::Time::now() - origin_).toSec());
+  }
+  const double warn = params_->deadline_warn_fraction;
+  const double lag = origin_.isZero() || params_->as_fast_as_possible
+                         ? 0.0
+                         : std::max(0.0, (ros::Time::now() - origin_).toSec() - sim_->time());
+  // Every condition that holds is named; the level is the worst of them. Slow-downs to the
+  // speed limits are the guard doing its work (counted, not warned).
+  std::vector<std::string> warnings;
+  if (rej > diag_rejected_) warnings.push_back(std::to_string(rej - diag_rejected_) + " commands rejected");
+  if (d.late_fraction > warn || d.skipped_fraction > warn) {
+    char b[200];
+    std::snprintf(b, sizeof b, "not keeping real time: %.1f %% of the last second's steps late, %.1f %% of its ticks "
+                  "skipped (~deadline_warn_fraction %.1f %%)", 100 * d.late_fraction, 100 * d.skipped_fraction, 100 * warn);
+    warnings.push_back(b);
+  }
+  if (reconfigure_ && !reconfigure_->lastRefusal().empty())
+    warnings.push_back("the last reconfigure was refused: " + reconfigure_->lastRefusal());
+  if (lag > 10 * scene_.dt) warnings.push_back("the simulation is " + std::to_string(lag) + " s behind the clock");
+  if (!failure_.empty()) {
+    stat.summary(diagnostic_msgs::DiagnosticStatus::ERROR, "numerical failure: " + failure_);
+  } else if (!warnings.empty()) {
+    std::string m;
+    for (const auto& w : warnings) m += (m.empty() ? "" : "; ") + w;
+    stat.summary(diagnostic_msgs::DiagnosticStatus::WARN, m);
+  } else {
+    stat.summary(diagnostic_msgs::DiagnosticStatus::OK, commanded_ || params_->command_source == "scene" ? "running"
+                                                                                                : "waiting for commands");
+  }
+  stat.add("lag_s", lag);
+  stat.add("reconfigure_refused", reconfigure_ ? reconfigure_->refusals() : 0UL);
+  stat.add("slowed_down_last_second", lim - diag_limited_);
+  diag_rejected_ = rej;
+  diag_limited_ = lim;
+  stat.add("scene", scene_.name);
+  stat.add("step", sim_->stepIndex());
+  stat.add("sim_time", sim_->time());
+  stat.add("dofs", sim_->numDofs());
+  stat.add("step_ms_max", step_ms_max_);
+  stat.add("late_steps", d.late);
+  stat.add("skipped_ticks", d.skipped);
+  stat.add("late_steps_per_s", d.late_per_s);
+  stat.add("skipped_ticks_per_s", d.skipped_per_s);
+  stat.add("longest_late_run", d.longest_late_run);
+  stat.add("rejected_commands", rej);
+  stat.add("clamped_commands", lim);
+  for (int r = 0; r < kGuardRules; ++r) stat.add(std::string("guard/") + ruleName(static_cast<GuardRule>(r)), counts[r]);
+  stat.add("output_thread_ms_total", out_->busyMs());
+  stat.add("output_messages_dropped", out_->dropped());
+}
+
+}  // namespace needle_sim

@@ -1,0 +1,32 @@
+#include "share_dir.hpp"
+
+#include <unistd.h>
+
+#include <cstdlib>
+#include <filesystem>
+
+namespace needle_sim {
+
+namespace fs = std::filesystem;
+
+std::string shareDir() {
+  if (const char* env = std::getenv("NEEDLE_SIM_SHARE_DIR"); env && *env) return env;
+  char buf[4096];
+  const ssize_t n = readlink("/proc/self/exe", buf, sizeof buf - 1);
+  if (n > 0) {
+    buf[n] = 0;
+    const fs::path installed = fs::path(buf).parent_path() / ".." / ".." / "share" / "needle_sim";
+    std::error_code ec;
+    if (fs::exists(installed / "config" / "scenes", ec)) return fs::weakly_canonical(installed, ec).string();
+  }
+  return NEEDLE_SIM_SOURCE_SHARE_DIR;
+}
+
+std::string resolveScene(const std::string& path) {
+  std::error_code ec;
+  if (fs::exists(path, ec) || path.find('/') != std::string::npos) return path;
+  const fs::path shipped = fs::path(shareDir()) / "config" / "scenes" / path;
+  return fs::exists(shipped, ec) ? shipped.string() : path;
+}
+
+}  // namespace needle_sim

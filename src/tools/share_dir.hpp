@@ -1,0 +1,14 @@
+#pragma once
+// Where the tool finds the package's files (scenes, meshes): $NEEDLE_SIM_SHARE_DIR if set;
+// else beside the executable as installed (<prefix>/lib/needle_sim/needle_sim ->
+// <prefix>/share/needle_sim); else the source tree it was built from (devel space). A scene
+// named without a folder that does not exist where it is asked for is looked up in
+// <share>/config/scenes, so `needle_sim run phantom_insertion_adaptive.yaml` works anywhere.
+#include <string>
+
+namespace needle_sim {
+
+std::string shareDir();
+std::string resolveScene(const std::string& path);
+
+}  // namespace needle_sim
