@@ -15,7 +15,7 @@ fi
 # The unit tests only (the rostest nodes, the stability sweep and the soak, slow under ASan,
 # stay in the regular build).
 UNIT=(test_fem test_solver test_verification test_scene test_beam test_interaction test_spr test_refinement
-      test_adaptivity test_immersed test_prediction test_cli test_ros_commands)
+      test_adaptivity test_immersed test_prediction test_cli test_command_guard test_pieces test_goal_estimate)
 cmake --build "$BUILD" -j"$(nproc)" --target "${UNIT[@]}" fuzz_scene_replay fuzz_mesh_replay needle_sim_tool >&2
 cd "$BUILD"
 # Leaks are reported too; halt on the first UB report. OpenBLAS's threads are kept at one.
@@ -23,4 +23,4 @@ export ASAN_OPTIONS="detect_leaks=1:abort_on_error=0:strict_string_checks=1"
 export UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1"
 export LSAN_OPTIONS="suppressions=$ROOT/test/fuzz/lsan.supp:print_suppressions=0"
 export OPENBLAS_NUM_THREADS=1 OMP_THREAD_LIMIT=1
-ctest --output-on-failure -E "rostest|stability_sweep|soak" "$@"
+ctest --output-on-failure -E "rostest|stability_sweep|soak|rviz_view|launch_sequence" "$@"

@@ -152,8 +152,8 @@ std::vector<needle_sim::TargetState> targetStates(const StepFrame& f, const std:
     m.tip_distances = t.tip_distances;
     m.needle_tip_distance = t.tip_distances.empty() ? nan : t.tip_distances[0];
     m.electrode_tip_distance = l.electrode >= 0 ? t.tip_distances[l.electrode] : nan;
-    m.displacement_error = toVector(Vec3::Constant(nan));
-    m.displacement_error_bound = nan;
+    m.displacement_error = toVector(t.has_error ? t.error : Vec3::Constant(nan));
+    m.displacement_error_bound = t.has_error ? t.error_bound : nan;
     out.push_back(m);
   }
   return out;

@@ -29,6 +29,7 @@ struct DisplayOutputs::Frame {
   std::vector<bool> path, marker;  // subscribed, per needle
   std::vector<std::string> targets;
   std::vector<Vec3> target_x;
+  std::vector<double> target_bound;  // per target, the error bound's radius (< 0: none)
   int primary = -1;
   bool target_markers = false;
 };
@@ -61,7 +62,8 @@ DisplayOutputs::DisplayOutputs(ros::NodeHandle& pnh, const NodeParameters& p, co
   }
 }
 
-void DisplayOutputs::publish(const Simulation& sim, const std::shared_ptr<const ObservableNames>& names, int primary) {
+void DisplayOutputs::publish(const Simulation& sim, const std::shared_ptr<const ObservableNames>& names, int primary,
+                             const Observables& obs) {
   auto f = std::make_shared<Frame>();
   f->header.stamp = ros::Time::now();
   f->header.frame_id = p_.tissue_frame;
@@ -81,7 +83,11 @@ void DisplayOutputs::publish(const Simulation& sim, const std::shared_ptr<const 
     target_size_ = std::max(1e-3, 0.01 * (m.boundsMax() - m.boundsMin()).norm());
   }
   f->targets = names->targets;
-  for (int i = 0; i < sim.numTargets(); ++i) f->target_x.push_back(sim.targetPosition(i));
+  for (int i = 0; i < sim.numTargets(); ++i) {
+    f->target_x.push_back(sim.targetPosition(i));
+    const bool has = i < static_cast<int>(obs.targets.size()) && obs.targets[i].has_error;
+    f->target_bound.push_back(has ? obs.targets[i].error_bound : -1.0);
+  }
   f->primary = sim.numTargets() > 0 ? std::min(primary, sim.numTargets() - 1) : -1;
   f->target_markers = target_markers_pub_.getNumSubscribers() > 0;
   if (sim.hasTissue()) {
@@ -183,6 +189,16 @@ void DisplayOutputs::build(const Frame& f) {
       m.scale.x = m.scale.y = m.scale.z = target_size_;
       m.color.r = 1.f, m.color.g = 0.2f, m.color.b = 0.8f, m.color.a = 1.f;
       arr.markers.push_back(m);
+      // The target's error bound: a translucent sphere of that radius ("target at x +- e").
+      visualization_msgs::Marker b = m;
+      b.ns = "target_error_bound/" + f.targets[i];
+      if (f.target_bound[i] > 0) {
+        b.scale.x = b.scale.y = b.scale.z = 2 * f.target_bound[i];
+        b.color.r = 1.f, b.color.g = 0.6f, b.color.b = 0.9f, b.color.a = 0.3f;
+      } else {
+        b.action = visualization_msgs::Marker::DELETE;
+      }
+      arr.markers.push_back(b);
     }
     target_markers_pub_.publish(arr);
   }

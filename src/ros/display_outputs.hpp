@@ -30,7 +30,8 @@ class DisplayOutputs {
  public:
   DisplayOutputs(ros::NodeHandle& pnh, const NodeParameters& p, const Scene& scene, OutputQueue& out);
   // On the stepping thread, the simulation's lock held.
-  void publish(const Simulation& sim, const std::shared_ptr<const ObservableNames>& names, int primary_target);
+  void publish(const Simulation& sim, const std::shared_ptr<const ObservableNames>& names, int primary_target,
+               const Observables& obs);
   double rate() const { return rate_; }
   void setRate(double hz) { rate_ = hz; }
   double range() const { return range_; }  // |u| at the top of the colour scale [m]

@@ -33,7 +33,9 @@ needle_sim::InsertNeedleResult InsertAction::result(const Active& a, const Obser
   const NeedleObservation& n = o.needles[a.needle];
   const Vec3 target = a.target >= 0 ? o.targets[a.target].position : a.point;
   r.final_distance = (n.tip - target).norm();
-  r.error_bound = std::numeric_limits<double>::quiet_NaN();
+  r.error_bound = a.target >= 0 && a.target < static_cast<int>(o.targets.size()) && o.targets[a.target].has_error
+                      ? o.targets[a.target].error_bound
+                                                                 : std::numeric_limits<double>::quiet_NaN();
   r.inserted = (n.base - a.base0).dot(a.axis);
   r.state = toString(n.state);
   r.message = msg;

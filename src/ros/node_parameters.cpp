@@ -69,6 +69,9 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   pnh.param("insert_speed", p.insert_speed, p.insert_speed);
   if (!(p.insert_speed > 0) || !(p.insert_speed <= l.max_speed))
     throw InputError("", "~insert_speed", "must be in (0, ~max_speed]");
+  pnh.param("target_error_period", p.target_error_period, p.target_error_period);
+  if (!(p.target_error_period >= 0) || !std::isfinite(p.target_error_period))
+    throw InputError("", "~target_error_period", "must be >= 0 (0: no error bound)");
   pnh.param("deadline_warn_fraction", p.deadline_warn_fraction, p.deadline_warn_fraction);
   if (!(p.deadline_warn_fraction >= 0) || !(p.deadline_warn_fraction <= 1))
     throw InputError("", "~deadline_warn_fraction", "must be in [0, 1]");

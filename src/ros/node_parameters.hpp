@@ -33,6 +33,7 @@ struct NodeParameters {
   double predict_dt = 0.01, predict_sample_period = 0.05;
   int predict_max_steps = 100000;
   double insert_speed = 0.005;          // [m/s] default speed of ~insert goals
+  double target_error_period = 0.2;     // [s] goal-oriented error bound of the targets this often (0: off)
   double deadline_warn_fraction = 0.05;  // diagnostics WARN above this share of late steps / skipped ticks
 };
 

@@ -73,6 +73,7 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
   plan.duration = req.duration;
   plan.dt = req.dt > 0 ? req.dt : params_->predict_dt;
   plan.sample_period = req.sample_period > 0 ? req.sample_period : params_->predict_sample_period;
+  plan.target_error = params_->target_error_period > 0;
   Rigid to_tissue;
   if (!toTissue(req.trajectory.header.frame_id, req.trajectory.header.stamp, "~predict", to_tissue))
     return refuse(req.trajectory.header.frame_id.empty()
@@ -114,6 +115,7 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
     if (target >= 0) {
       res.target_position.push_back(toPoint(s.targets[target]));
       res.target_tip_distance.push_back(s.tip_distances[target]);
+      if (plan.target_error) res.target_error_bound.push_back(s.target_error_bounds[target]);
     }
   }
   if (target >= 0) res.final_target_tip_distance = res.target_tip_distance.back();

@@ -69,6 +69,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   }
   action_ = std::make_unique<InsertAction>(*this, pnh_, P.insert_speed);
   reconfigure_ = std::make_unique<LimitsReconfigure>(pnh_, *guard_, [this](double rate) { display_->setRate(rate); });
+  if (P.target_error_period > 0) error_thread_ = std::thread(&SimulatorRos::errorLoop, this);
   thread_ = std::thread(&SimulatorRos::worker, this);
   if (!P.as_fast_as_possible) timer_ = nh_.createTimer(ros::Duration(scene_.dt), &SimulatorRos::onTimer, this);
   ROS_INFO("needle_sim: scene '%s' (%s), %d DOFs, dt %g s, commands from %s, interface under %s", scene_.name.c_str(),
@@ -92,13 +93,27 @@ SimulatorRos::~SimulatorRos() {
   }
   wake_.notify_all();
   if (thread_.joinable()) thread_.join();
+  {
+    std::lock_guard<std::mutex> lk(error_mutex_);
+    error_stop_ = true;
+  }
+  error_cv_.notify_all();
+  if (error_thread_.joinable()) error_thread_.join();
   action_.reset();
   display_.reset();
   out_.reset();  // sends what is queued, then stops
 }
 
 void SimulatorRos::load() {
-  sim_ = std::make_unique<Simulation>(scene_);
+  Simulation::Options so;
+  so.target_errors = params_->target_error_period > 0;
+  sim_ = std::make_unique<Simulation>(scene_, so);
+  {
+    std::lock_guard<std::mutex> lk(error_mutex_);
+    errors_latest_.clear();
+    errors_step_ = -1;
+  }
+  last_error_time_ = -1e300;
   names_ = std::make_shared<const ObservableNames>(observableNames(*sim_));
   CommandLimits limits = guard_ ? guard_->limits() : params_->limits;
   if (sim_->hasTissue()) {
@@ -226,6 +241,56 @@ void SimulatorRos::applyCommands() {
       commanded_ = true;
     }
     if (p.done) p.done(why);
+  }
+}
+
+void SimulatorRos::errorLoop() {
+  for (;;) {
+    std::unique_ptr<Simulation> job;
+    {
+      std::unique_lock<std::mutex> lk(error_mutex_);
+      error_cv_.wait(lk, [&] { return error_stop_ || error_job_; });
+      if (error_stop_) return;
+      job = std::move(error_job_);
+    }
+    std::vector<TargetError> errs;
+    try {
+      errs = job->targetErrors();
+    } catch (const std::exception& e) {
+      ROS_WARN_THROTTLE(10.0, "needle_sim: target error estimate failed: %s", e.what());
+    }
+    for (auto& e : errs) e.indicator.clear();  // (not needed here)
+    std::lock_guard<std::mutex> lk(error_mutex_);
+    if (!errs.empty()) {
+      errors_latest_ = std::move(errs);
+      errors_step_ = job->stepIndex();
+    }
+    error_busy_ = false;
+  }
+}
+
+void SimulatorRos::updateTargetErrors() {
+  if (!(params_->target_error_period > 0) || sim_->numTargets() == 0) return;
+  // With goal-oriented adaptivity the simulation estimates on its own passes.
+  if (sim_->adaptation() && sim_->adaptation()->settings().estimator == AdaptivitySettings::Estimator::Goal) return;
+  {
+    std::lock_guard<std::mutex> lk(error_mutex_);
+    if (!error_busy_ && sim_->time() - last_error_time_ >= params_->target_error_period - 1e-12) {
+      last_error_time_ = sim_->time();
+      error_busy_ = true;
+      error_job_ = std::make_unique<Simulation>(*sim_);
+      error_cv_.notify_one();
+    }
+    if (errors_latest_.size() != obs_.targets.size()) return;
+    for (size_t i = 0; i < errors_latest_.size(); ++i) {
+      TargetObservation& t = obs_.targets[i];
+      const TargetError& e = errors_latest_[i];
+      t.has_error = e.valid;
+      t.error_step = errors_step_;
+      t.error = e.estimate;
+      t.error_bound = e.bound;
+      t.qoi = e.qoi;
+    }
   }
 }
 

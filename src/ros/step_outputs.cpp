@@ -44,6 +44,7 @@ void SimulatorRos::publishStep(double ms) {
   f.display_range = display_->range();
   if (failure_.empty()) {  // never publish a state that failed: the status alone
     observe(*sim_, obs_);
+    updateTargetErrors();
     f.obs = obs_;
     f.primary_target = std::min(primary_target_, sim_->numTargets() - 1);
     f.send_target_point = sim_->numTargets() > 0 && target_pub_.getNumSubscribers() > 0;
@@ -59,7 +60,7 @@ void SimulatorRos::publishStep(double ms) {
   if (!failure_.empty()) return;
   if ((wall - last_display_).toSec() >= 1.0 / display_->rate()) {
     last_display_ = wall;
-    display_->publish(*sim_, names_, primary_target_);
+    display_->publish(*sim_, names_, primary_target_, obs_);
   }
 }
 

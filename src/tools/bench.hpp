@@ -12,6 +12,8 @@ struct BenchOptions {
   std::vector<std::string> sets;
   bool compare_direct = false;
   std::string json_out;
+  int target_error_every = 0;  // adaptive scenes: the goal-oriented target estimate every N steps (timed apart)
+  std::vector<double> target;  // x y z: a target added at this planning position (for the estimate)
 };
 
 int benchCommand(const BenchOptions& opts);

@@ -12,6 +12,8 @@
 // Exit status: 0 success, 2 invalid input (scene, overrides, command line),
 // 3 numerical failure (NaN/Inf, divergence, solver failure; reported with the step).
 #include <CLI/CLI.hpp>
+#include <nlohmann/json.hpp>
+#include <fstream>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -42,10 +44,27 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   std::unique_ptr<Simulation> sim;
   try {
     scene = loadScene(scene_path, sets);
-    sim = std::make_unique<Simulation>(scene);
+    if (options.target_error && scene.targets.empty())
+      throw InputError(scene_path, "--target-error", "the scene has no targets to estimate the error of");
+    Simulation::Options so;
+    so.target_errors = options.target_error;
+    sim = std::make_unique<Simulation>(scene, so);
   } catch (const InputError& e) {
     std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
     return kExitInput;
+  } catch (const NumericalError& e) {
+    // A failure while the simulation is built (the brain shift's pre-step): the run's
+    // folder says so, as for a failure during the steps.
+    std::error_code ec;
+    std::filesystem::create_directories(out_dir, ec);
+    std::ofstream f(out_dir + "/summary.json");
+    f << nlohmann::json{{"status", "numerical_failure"}, {"failed_step", e.step()}, {"message", e.what()},
+                        {"scene", {{"name", scene.name}, {"file", scene.file}}}}
+             .dump(2)
+      << '\n';
+    std::cerr << "needle_sim: numerical failure before the first step: " << e.what() << "\n"
+              << "needle_sim: failure report in " << out_dir << "/summary.json\n";
+    return kExitNumerical;
   }
   std::unique_ptr<RunRecorder> rec;
   try {
@@ -155,6 +174,11 @@ int main(int argc, char** argv) {
   run->add_flag("--error-estimate", rec_opts.error_estimate,
                 "SPR error estimate of the tissue every step (eta_global, eta_max, eta_relative columns)");
   run->add_flag("--vtu", rec_opts.vtu, "also write DIR/tissue.vtu: the final mesh with displacement, von Mises stress, eta");
+  run->add_flag("--target-error", rec_opts.target_error,
+                "goal-oriented estimate of each target's displacement error: <name>_err_* columns, summary.json "
+                "targets.<name>.error_estimate and error_bound");
+  run->add_option("--target-error-every", rec_opts.target_error_every, "... every N steps (default 1)")
+      ->check(CLI::PositiveNumber);
   run->add_option("--vtu-every", rec_opts.vtu_every,
                   "a ParaView series every N steps: DIR/vtu/, DIR/tissue.pvd, DIR/needles.pvd (0: none)")
       ->check(CLI::NonNegativeNumber);
@@ -173,6 +197,9 @@ int main(int argc, char** argv) {
   bench->add_flag("--compare-direct", bench_opts.compare_direct,
                   "also run with a fresh factorisation every step and report the probe difference");
   bench->add_option("--json", bench_opts.json_out, "also write the results as JSON to this file");
+  bench->add_option("--target-error-every", bench_opts.target_error_every,
+                    "adaptive scenes: time the goal-oriented target estimate every N steps as its own phase");
+  bench->add_option("--target", bench_opts.target, "add a target at this planning position: x y z [m]")->expected(3);
 
   PredictOptions pred;
   auto* predict = app.add_subcommand("predict", "predict a straight insertion on a copy of a running scene, timed");

@@ -27,6 +27,7 @@
 #include <needle_sim/NeedleTrajectory.h>
 #include <needle_sim/SetTarget.h>
 #include <needle_sim/SimStatus.h>
+#include <needle_sim/TargetState.h>
 #include <std_srvs/Trigger.h>
 #include <trajectory_msgs/MultiDOFJointTrajectory.h>
 
@@ -218,6 +219,24 @@ TEST(Interfaces, TfTreeTrajectoriesReconfigureAndTheInsertAction) {
   set.request.point.x = 0.012, set.request.point.y = kY, set.request.point.z = kZ;
   ASSERT_TRUE(ros::service::call("needle_sim/set_target", set));
   ASSERT_TRUE(set.response.success) << set.response.message;
+  //    The target's error bound (goal-oriented estimate, every ~target_error_period of
+  //    simulated time, off the stepping thread) is published with its state.
+  std::mutex tm;
+  needle_sim::TargetState ts;
+  auto s3 = nh.subscribe<needle_sim::TargetState>("target/state", 100, [&](const needle_sim::TargetState::ConstPtr& m) {
+    std::lock_guard<std::mutex> lk(tm);
+    ts = *m;
+  });
+  ASSERT_TRUE(waitFor([&] {
+    std::lock_guard<std::mutex> lk(tm);
+    return std::isfinite(ts.displacement_error_bound);
+  }, 10.0)) << "no error bound on ~target/state";
+  {
+    std::lock_guard<std::mutex> lk(tm);
+    EXPECT_GE(ts.displacement_error_bound, 0.0);
+    EXPECT_TRUE(std::isfinite(ts.displacement_error.x) && std::isfinite(ts.displacement_error.z));
+    EXPECT_LE(std::abs(ts.displacement_error.x), ts.displacement_error_bound);
+  }
   //    4a. To 3 mm before the target at 10 mm/s: 12 mm of travel in 1.2 s.
   std::atomic<int> feedback{0};
   std::atomic<double> last_distance{NAN};
@@ -237,7 +256,7 @@ TEST(Interfaces, TfTreeTrajectoriesReconfigureAndTheInsertAction) {
   EXPECT_GT(r.final_distance, 0.002);  // the target is pushed ahead of the tip ...
   EXPECT_LT(r.final_distance, 0.006);  // ... by a few millimetres at most
   EXPECT_EQ(r.state, "inserted");
-  EXPECT_TRUE(std::isnan(r.error_bound));
+  EXPECT_TRUE(std::isfinite(r.error_bound) && r.error_bound >= 0) << r.error_bound;
   //    4b. Preempted half-way: the needle holds where it is.
   ASSERT_TRUE(resetAndWait(st));
   goal = needle_sim::InsertNeedleGoal();

@@ -1,10 +1,17 @@
 #pragma once
 // Parameters of error-controlled adaptivity (scene section `adaptivity`). Absent section:
 // no estimator, no marking, no cost.
+#include <string>
+#include <vector>
 
 namespace needle_sim {
 
 struct AdaptivitySettings {
+  // spr: the energy-norm SPR estimate drives the mesh; goal: the named targets' displacement
+  // errors (goal_estimator.hpp) until each bound is below goal_tolerance.
+  enum class Estimator { Spr, Goal } estimator = Estimator::Spr;
+  std::vector<std::string> goal_targets;  // names of the scene's targets
+  double goal_tolerance = 0;              // [m]
   enum class Marking { Max, Bulk } marking = Marking::Max;
   double theta = 0.3;       // max rule: eta_e >= theta max eta; bulk: fraction of sum eta^2
   int max_level = 2;        // refinement levels above the scene's grid

@@ -41,8 +41,10 @@ class MeshAdaptation {
   const RefinableHexMesh& forest() const { return forest_; }
   const AdaptivitySettings& settings() const { return settings_; }
 
-  // Marks, coarsens and refines for the estimate of the current active mesh.
-  AdaptationResult adapt(const ErrorEstimate& estimate);
+  // Marks, coarsens and refines for the estimate of the current active mesh (its eta: the
+  // element indicators). refine false: only coarsening (a goal-oriented run whose targets
+  // meet their tolerance).
+  AdaptationResult adapt(const ErrorEstimate& estimate, bool refine = true);
   // Refines the given active elements (tests, initial refinement), with 2:1 balance.
   AdaptationResult refineElements(const std::vector<int>& elements);
   // Merges the children of the parents of the given active elements (tests).

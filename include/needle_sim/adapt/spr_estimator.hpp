@@ -47,6 +47,22 @@ class SprEstimator {
   Stress elementStress(const VecX& x, int e, const Vec3& xi, const Mat3& R) const;
   static double vonMises(const Stress& s);
 
+  // The recovered nodal field (SPR patch fits) of given element-centroid stresses.
+  std::vector<Stress> recover(const std::vector<Stress>& centroid) const;
+
+  // A displacement increment dz (3n), linear about the rotations of x (the dual field of a
+  // goal-oriented estimate, adapt/goal_estimator.hpp): its element error indicators in the
+  // energy norm, and per element the product with the primal field's error,
+  //     mixed_e = int_e (sigma*_u - sigma_u)^T D^-1 (sigma*_z - sigma_z) dV,
+  // the primal field (x, reference) with its recovery `primal` (estimate()'s result).
+  struct DualIndicators {
+    std::vector<double> eta;    // per element
+    std::vector<double> mixed;  // per element
+    double global = 0;          // sqrt(sum eta^2)
+    double mixed_total = 0;     // sum mixed
+  };
+  DualIndicators dual(const VecX& x, const VecX* reference, const ErrorEstimate& primal, const VecX& dz) const;
+
  private:
   // Element displacement in its corotated frame, relative to the centroid.
   Eigen::Matrix<double, 24, 1> corotatedDisplacement(const VecX& x, int e, const Mat3& R) const;

@@ -2,7 +2,7 @@
 // Closed triangle surfaces: organ boundaries (immersed geometry), targets such as the
 // subthalamic nucleus, skull surfaces and clamp patches (doc/method.md "Immersed geometry").
 //
-// Files are read with assimp (OBJ, STL, OFF, PLY, ...). Identical vertices are welded, and
+// Files are read with assimp (OBJ, STL, PLY, ...; OFF with our own reader: assimp's overread on malformed files). Identical vertices are welded, and
 // the mesh must be closed with a consistent orientation: every edge a->b is matched by an
 // edge b->a. Non-manifold edges (four triangles on one edge, as in the demo brain) pass this
 // test and are harmless to the winding-number inside test. An inside-out mesh is flipped.

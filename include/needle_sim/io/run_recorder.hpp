@@ -33,6 +33,8 @@ struct RecorderOptions {
   bool vtu = false;             // DIR/tissue.vtu at the end (stress, eta, level)
   int vtu_every = 0;            // > 0: a ParaView series, DIR/vtu/*_NNNNNN.vt[up] every this many steps and
                                 // DIR/tissue.pvd, DIR/needles.pvd (and DIR/surface.pvd for an organ)
+  bool target_error = false;    // goal-oriented estimate of each target's error: <name>_err_* columns
+  int target_error_every = 1;   // ... every this many steps (the last pass's values in between)
 };
 
 class RunRecorder {
@@ -67,6 +69,7 @@ class RunRecorder {
   const Simulation& sim_;
   Options options_;
   bool estimate_ = false;  // eta columns (error output asked for, or adaptivity)
+  bool target_error_ = false;  // <name>_err_* columns (asked for, or goal-oriented adaptivity)
   double eta_last_ = 0, eta_max_last_ = 0, eta_rel_max_ = 0;
   int max_tissue_dofs_ = 0, mesh_changes_ = 0;
   long refined_total_ = 0, coarsened_total_ = 0;

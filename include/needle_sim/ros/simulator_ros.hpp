@@ -78,6 +78,11 @@ class SimulatorRos {
   void stepOnce();              // sim_mutex_ held
   void publishStep(double ms);  // sim_mutex_ held
   void diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat);
+  // Goal-oriented error bounds of the targets, off the stepping thread: every
+  // ~target_error_period the worker copies the simulation (sim_mutex_ held) and this thread
+  // estimates on the copy; the next steps' observables carry the result.
+  void errorLoop();
+  void updateTargetErrors();  // sim_mutex_ held
   double simSeconds(const ros::Time& t) const;  // ROS time -> simulation time (queue_mutex_ held)
   void sendStep(const StepFrame& f);            // on the output thread
   void restartClock(const ros::Time& now);      // queue_mutex_ held
@@ -146,6 +151,14 @@ class SimulatorRos {
   ros::CallbackQueue predict_queue_;  // predictions take their own thread
   std::unique_ptr<ros::AsyncSpinner> predict_spinner_;
   std::thread thread_;
+  std::mutex error_mutex_;  // error_job_, errors_latest_, errors_step_, error_busy_, error_stop_
+  std::condition_variable error_cv_;
+  std::unique_ptr<Simulation> error_job_;
+  std::vector<TargetError> errors_latest_;
+  long errors_step_ = -1;
+  bool error_busy_ = false, error_stop_ = false;
+  double last_error_time_ = -1e300;  // simulation time of the last copy taken (sim_mutex_)
+  std::thread error_thread_;
 };
 
 }  // namespace needle_sim

@@ -58,6 +58,9 @@ struct TargetScene {
   std::string key;
   Vec3 point = Vec3::Zero();
   std::shared_ptr<const TriangleMesh> surface;  // when given as a surface
+  // Radius of the ball the goal-oriented error estimate averages the displacement over
+  // [m]; negative: half the finest element's edge.
+  double radius = -1;
 };
 
 struct Scene {

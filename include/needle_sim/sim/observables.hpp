@@ -2,7 +2,7 @@
 // What every consumer reports about a running simulation, computed once, here: the
 // recorder (timeseries.csv, summary.json), predict, the command-line tool and the ROS node
 // read an Observables and its ObservableNames; none of them asks the bodies itself. Signs
-// and frames (doc/observables.md):
+// and frames (doc/method.md, "Observables"):
 //   - positions in the tissue frame [m]; the needle frames in the pose convention
 //     (command/pose_convention.hpp: x along the needle, towards the tip);
 //   - holder force and moment: what the needle exerts on its holder (what a force/torque
@@ -45,6 +45,14 @@ struct TargetObservation {
   Vec3 displacement = Vec3::Zero();  // since step 0
   Vec3 shift = Vec3::Zero();         // from the planning position
   std::vector<double> tip_distances;  // per needle
+  // The last goal-oriented estimate of the displacement's discretisation error
+  // (goal_estimator.hpp), when one was computed: signed estimate of u - u_h (regularised
+  // over a small ball), a bound on its norm, and the regularised displacement itself.
+  bool has_error = false;
+  long error_step = -1;  // the step it was computed at
+  Vec3 error = Vec3::Zero();
+  double error_bound = 0;
+  Vec3 qoi = Vec3::Zero();
 };
 
 struct Observables {

@@ -21,6 +21,7 @@ struct InsertionPlan {
   double duration = 0;       // simulated time from now [s]; 0: until the last waypoint
   double dt = 0;             // time step [s]; 0: the live simulation's
   double sample_period = 0;  // spacing of the samples [s]; 0: every step
+  bool target_error = false; // a goal-oriented error bound of each target at each sample
 };
 
 // One sample of the predicted run; vectors are per target / per needle, in the live
@@ -31,6 +32,7 @@ struct PredictionSample {
   std::vector<Vec3> tips;         // needle tip positions
   std::vector<Vec3> base_forces;  // force each needle exerts on its holder (-NeedleBody::baseForce)
   std::vector<double> tip_distances;  // per target: distance to the planned needle's tip
+  std::vector<double> target_error_bounds;  // per target, with InsertionPlan::target_error (NaN: failed)
 };
 
 struct Prediction {

@@ -10,6 +10,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "needle_sim/adapt/goal_estimator.hpp"
 #include "needle_sim/adapt/mesh_adaptation.hpp"
 #include "needle_sim/adapt/spr_estimator.hpp"
 #include "needle_sim/contact/needle_tissue_interaction.hpp"
@@ -27,9 +28,16 @@ HexMesh buildTissueMesh(const TissueScene& tissue);
 
 class Simulation {
  public:
+  struct Options {
+    // The goal-oriented estimates of the targets' displacement errors will be asked for
+    // (targetErrors): the brain shift's own is then kept at the end of its pre-step.
+    // (Implied by goal-oriented adaptivity.)
+    bool target_errors = false;
+  };
   // Throws InputError for scene content that only shows once the mesh exists (a probe
   // outside the tissue, a region selecting no node).
-  explicit Simulation(const Scene& scene);
+  explicit Simulation(const Scene& scene) : Simulation(scene, Options{}) {}
+  Simulation(const Scene& scene, const Options& options);
   // A deep copy of the whole state (bodies and their factors, constraints and insertion
   // states, the adaptive mesh and its hysteresis, targets, loads, time): stepping the copy
   // leaves this one alone and gives, step for step, what this one would. A prediction
@@ -54,6 +62,7 @@ class Simulation {
   double time() const { return time_base_ + (step_ - step_base_) * dt_; }
   bool hasTissue() const { return tissue_ != nullptr; }
   const TissueBody& tissue() const { return *tissue_; }
+  TissueBody& tissue() { return *tissue_; }  // (tests: prescribed fields, states)
   // The needle-tissue interaction, or nullptr when the scene has none.
   const NeedleTissueInteraction* interaction() const { return interaction_.get(); }
   int numNeedles() const { return static_cast<int>(needles_.size()); }
@@ -79,6 +88,18 @@ class Simulation {
   const ErrorEstimate* lastEstimate() const { return estimate_ever_ ? &estimate_ : nullptr; }
   // The estimate of the current state if one was computed since the last step, or nullptr.
   const ErrorEstimate* currentEstimate() const { return estimate_step_ == step_ ? &estimate_ : nullptr; }
+  // Goal-oriented estimates of the targets' displacement errors (goal_estimator.hpp), one
+  // per target in order, for the current state: computed on first use after each step
+  // (one 3-column dual solve with the current factor and three SPR recoveries per target).
+  // After a brain shift, the estimate of the shift itself (kept from the end of the
+  // pre-step) is added: errors add up, so do their bounds.
+  const std::vector<TargetError>& targetErrors() const;
+  const TargetError& targetError(int i) const;  // one of them (the same cache)
+  // The last ones computed, or nullptr.
+  const std::vector<TargetError>* lastTargetErrors() const { return errors_ever_ ? &target_errors_ : nullptr; }
+  long lastTargetErrorStep() const { return last_error_step_; }
+  // Radius of target i's regularised point [m].
+  double qoiRadius(int i) const;
   // Refines the given tissue elements now (tests, scripted refinement), carrying the state
   // over; needs an adaptivity section.
   AdaptationResult refineElements(const std::vector<int>& elements);
@@ -113,6 +134,10 @@ class Simulation {
  private:
   void checkState() const;
   void adaptMesh();
+  // One estimate + mark + refine/coarsen pass with the scene's estimator (spr or goal).
+  AdaptationResult adaptationPass();
+  // The estimators bound to the current tissue body were made for another one.
+  void forgetEstimates();
   // After the adaptation changed the mesh: new tissue body with the state carried over,
   // probes and constraint points re-embedded; without persistent_loads (during the
   // pre-step) the brain-shift loads are left out and the velocities zeroed.
@@ -160,6 +185,19 @@ class Simulation {
   mutable ErrorEstimate estimate_;
   mutable long estimate_step_ = -1;
   mutable bool estimate_ever_ = false;
+  Options options_;
+  mutable std::vector<TargetQoi> qois_;  // per target, on the current mesh (empty: to be made)
+  mutable std::vector<TargetError> target_errors_;
+  mutable long target_errors_step_ = -1;
+  mutable bool errors_ever_ = false;
+  mutable long last_error_step_ = -1;
+  mutable std::vector<long> target_error_steps_;  // per target: the step its estimate is of
+  VecX shifted_;  // the brain-shifted state (the goal estimate's reference; empty: none)
+  mutable ErrorEstimate goal_primal_;  // the primal estimate against shifted_ (uniform meshes)
+  mutable long goal_primal_step_ = -1;
+  std::vector<TargetError> shift_errors_;  // the brain shift's, per target (empty: none)
+  double qoi_radius_ = 0;                   // default radius: half the finest element's edge
+  std::vector<int> goal_targets_;          // goal-oriented adaptivity: the targets it controls
   long contact_signature_ = 0;  // constraint counts and states at the last step
   long step_ = 0;
   long step_base_ = 0;     // time() = time_base_ + (step_ - step_base_) dt, so that dt may change

@@ -66,6 +66,13 @@ class SystemSolver {
   // the matrix is not positive definite or the solve fails. tolerance > 0 replaces the
   // settings' CG tolerance for this call (an inexact Newton step); ignored by the direct method.
   LinearSolveStats solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x, double tolerance = 0);
+  // Several right-hand sides of (c_m M + c_k K) X = B with CG preconditioned by the factor as
+  // it is, whatever matrix it was made for (the dual problems of a goal-oriented estimate:
+  // the stiffness with the dynamic step's factor), never refactorising (a factor is made
+  // only if there is none yet). Returns the iterations of the slowest column; x_converged
+  // false if a column missed the tolerance within max_iterations.
+  LinearSolveStats solveWithFactor(const VecX& mass_free, double c_m, double c_k, const Eigen::MatrixXd& B,
+                                   Eigen::MatrixXd& X, double tolerance, int max_iterations, bool& converged);
   // out = A v over the free DOFs, matrix-free.
   void apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const;
   // Adds c_k * blocks to A until cleared (nullptr); the caller keeps them alive and

@@ -79,6 +79,13 @@ class TissueBody {
   StepStats solveStatic(const ExtraForce& extra, double tolerance, int max_iterations,
                         LoadControl* control = nullptr);
 
+  // The dual problems of a goal-oriented estimate: K Z = G (G: loads, 3n per column) with
+  // the current tangent and the Dirichlet conditions, by CG on the body's factor (that of the
+  // last step, dynamic or static: never a new one). Z: displacements (3n per column, zero
+  // on prescribed DOFs, hanging DOFs from their masters). Returns false when CG did not
+  // converge within max_iterations.
+  bool solveDual(const Eigen::MatrixXd& G, Eigen::MatrixXd& Z, int& iterations, int max_iterations = 200) const;
+
   double kineticEnergy() const;
   double elasticEnergy() const { return model_->elasticEnergy(x_); }
   // Work potential of the constant external loads, -f_ext . u.

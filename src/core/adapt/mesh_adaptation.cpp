@@ -25,7 +25,7 @@ void MeshAdaptation::activate() {
   active_ = forest_.active();
 }
 
-AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est) {
+AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est, bool refine) {
   const int ne = active_.mesh.numElements();
   assert(static_cast<int>(est.eta.size()) == ne);
   AdaptationResult res;
@@ -38,7 +38,8 @@ AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est) {
 
   // 1. Marking, unless the estimate already meets the tolerance.
   std::vector<int> marked;
-  res.below_tolerance = settings_.tolerance > 0 && est.energy > 0 && est.global <= settings_.tolerance * est.energy;
+  res.below_tolerance =
+      !refine || (settings_.tolerance > 0 && est.energy > 0 && est.global <= settings_.tolerance * est.energy);
   if (!res.below_tolerance) {
     std::vector<char> refinable(ne);
     for (int e = 0; e < ne; ++e) refinable[e] = active_.level[e] < settings_.max_level && est.eta[e] > floor;

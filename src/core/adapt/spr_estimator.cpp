@@ -130,6 +130,113 @@ double SprEstimator::vonMises(const Stress& s) {
                    3 * (s[3] * s[3] + s[4] * s[4] + s[5] * s[5]));
 }
 
+std::vector<Stress> SprEstimator::recover(const std::vector<Stress>& centroid) const {
+  // Interior patches first, their polynomials also serve the patch's other nodes.
+  const HexMesh& mesh = model_.mesh();
+  const int nn = mesh.numNodes();
+  std::vector<Stress> out(nn, Stress::Zero());
+  std::vector<int> count(nn, 0);
+  std::vector<Stress> borrowed(nn, Stress::Zero());
+  std::vector<int> borrowed_count(nn, 0);
+  for (int n = 0; n < nn; ++n) {
+    if (!interior_[n]) continue;
+    std::vector<Vec3> pts;
+    std::vector<Stress> vals;
+    for (int e : node_elements_[n]) {
+      pts.push_back(centroids_[e]);
+      vals.push_back(centroid[e]);
+    }
+    Eigen::Matrix<double, 4, 6> c;
+    fitLinear(pts, vals, mesh.node(n), c);
+    out[n] = c.row(0).transpose();
+    count[n] = 1;
+    for (int e : node_elements_[n])
+      for (int a : mesh.element(e))
+        if (!interior_[a]) {
+          borrowed[a] += (c.row(0) + (mesh.node(a) - mesh.node(n)).transpose() * c.bottomRows<3>()).transpose();
+          ++borrowed_count[a];
+        }
+  }
+  for (int n = 0; n < nn; ++n) {
+    if (count[n]) continue;
+    if (borrowed_count[n]) {
+      out[n] = borrowed[n] / borrowed_count[n];
+    } else {  // no interior patch nearby (very coarse mesh): minimum-norm fit of its own patch
+      std::vector<Vec3> pts;
+      std::vector<Stress> vals;
+      for (int e : node_elements_[n]) {
+        pts.push_back(centroids_[e]);
+        vals.push_back(centroid[e]);
+      }
+      Eigen::Matrix<double, 4, 6> c;
+      fitLinear(pts, vals, mesh.node(n), c);
+      out[n] = c.row(0).transpose();
+    }
+  }
+
+  return out;
+}
+
+SprEstimator::DualIndicators SprEstimator::dual(const VecX& x, const VecX* reference, const ErrorEstimate& primal,
+                                                const VecX& dz) const {
+  const HexMesh& mesh = model_.mesh();
+  const int ne = mesh.numElements();
+  const auto& D = model_.material().elasticity();
+  const Eigen::Matrix<double, 6, 6> Dinv = D.inverse();
+  std::vector<Mat3> R(ne), R0(reference ? ne : 0);
+  std::vector<Stress> centroid(ne);
+  const Eigen::Matrix<double, 8, 3> Gc = hex8::shapeGradNatural(Vec3::Zero());
+  // The increment's element displacements in the rotated frames (the linearised corotational
+  // strain of dz at x); the primal's as in estimate().
+  std::vector<Eigen::Matrix<double, 24, 1>> zl(ne);
+  for (int e = 0; e < ne; ++e) {
+    R[e] = model_.computeRotation(e, x);
+    if (reference) R0[e] = model_.computeRotation(e, *reference);
+    const auto& el = mesh.element(e);
+    for (int a = 0; a < 8; ++a) zl[e].segment<3>(3 * a) = R[e].transpose() * node3(dz, el[a]);
+    const auto X = mesh.elementCorners(e);
+    const Mat3 J = X.transpose() * Gc;
+    centroid[e] = rotate(R[e], D * (hex8::strainDisplacement(Gc * J.inverse()) * zl[e]));
+  }
+  const std::vector<Stress> zstar = recover(centroid);
+  const GaussTable& gt = gaussTable();
+  DualIndicators out;
+  out.eta.assign(ne, 0.0);
+  out.mixed.assign(ne, 0.0);
+  double sum = 0;
+  for (int e = 0; e < ne; ++e) {
+    const auto& el = mesh.element(e);
+    const auto X = mesh.elementCorners(e);
+    const Eigen::Matrix<double, 24, 1> u = corotatedDisplacement(x, e, R[e]);
+    Eigen::Matrix<double, 24, 1> u0;
+    if (reference) u0 = corotatedDisplacement(*reference, e, R0[e]);
+    const double frac = mesh.fraction(e);
+    double eta2 = 0, mixed = 0;
+    for (int q = 0; q < 8; ++q) {
+      const Mat3 J = X.transpose() * gt.grad[q];
+      const double detJ = J.determinant() * frac;
+      const auto B = hex8::strainDisplacement(gt.grad[q] * J.inverse());
+      Stress us = Stress::Zero(), zs = Stress::Zero();
+      for (int a = 0; a < 8; ++a) {
+        us += gt.shape[q][a] * primal.recovered[el[a]];
+        zs += gt.shape[q][a] * zstar[el[a]];
+      }
+      Stress uh = rotate(R[e], D * (B * u));
+      if (reference) uh -= rotate(R0[e], D * (B * u0));
+      const Stress zh = rotate(R[e], D * (B * zl[e]));
+      const Stress du = us - uh, dzs = zs - zh;
+      eta2 += dzs.dot(Dinv * dzs) * detJ;
+      mixed += du.dot(Dinv * dzs) * detJ;
+    }
+    out.eta[e] = std::sqrt(std::max(eta2, 0.0));
+    out.mixed[e] = mixed;
+    sum += eta2;
+    out.mixed_total += mixed;
+  }
+  out.global = std::sqrt(sum);
+  return out;
+}
+
 ErrorEstimate SprEstimator::estimate(const VecX& x, const VecX* reference) const {
   const HexMesh& mesh = model_.mesh();
   const int ne = mesh.numElements(), nn = mesh.numNodes();
@@ -145,46 +252,7 @@ ErrorEstimate SprEstimator::estimate(const VecX& x, const VecX* reference) const
     }
   }
 
-  // Recovery: interior patches first, their polynomials also serve the patch's other nodes.
-  est.recovered.assign(nn, Stress::Zero());
-  std::vector<int> count(nn, 0);
-  std::vector<Stress> borrowed(nn, Stress::Zero());
-  std::vector<int> borrowed_count(nn, 0);
-  for (int n = 0; n < nn; ++n) {
-    if (!interior_[n]) continue;
-    std::vector<Vec3> pts;
-    std::vector<Stress> vals;
-    for (int e : node_elements_[n]) {
-      pts.push_back(centroids_[e]);
-      vals.push_back(est.centroid_stress[e]);
-    }
-    Eigen::Matrix<double, 4, 6> c;
-    fitLinear(pts, vals, mesh.node(n), c);
-    est.recovered[n] = c.row(0).transpose();
-    count[n] = 1;
-    for (int e : node_elements_[n])
-      for (int a : mesh.element(e))
-        if (!interior_[a]) {
-          borrowed[a] += (c.row(0) + (mesh.node(a) - mesh.node(n)).transpose() * c.bottomRows<3>()).transpose();
-          ++borrowed_count[a];
-        }
-  }
-  for (int n = 0; n < nn; ++n) {
-    if (count[n]) continue;
-    if (borrowed_count[n]) {
-      est.recovered[n] = borrowed[n] / borrowed_count[n];
-    } else {  // no interior patch nearby (very coarse mesh): minimum-norm fit of its own patch
-      std::vector<Vec3> pts;
-      std::vector<Stress> vals;
-      for (int e : node_elements_[n]) {
-        pts.push_back(centroids_[e]);
-        vals.push_back(est.centroid_stress[e]);
-      }
-      Eigen::Matrix<double, 4, 6> c;
-      fitLinear(pts, vals, mesh.node(n), c);
-      est.recovered[n] = c.row(0).transpose();
-    }
-  }
+  est.recovered = recover(est.centroid_stress);
 
   // Element errors in the energy norm (compliance D^-1), 2x2x2 Gauss.
   const auto& D = model_.material().elasticity();

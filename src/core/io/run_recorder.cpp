@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <iomanip>
 #include <nlohmann/json.hpp>
+#include <limits>
 #include <numeric>
 #include <stdexcept>
 
@@ -36,6 +37,9 @@ RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, const Op
     : sim_(sim), options_(options) {
   dir_ = dir;
   estimate_ = sim.hasTissue() && (options.error_estimate || sim.adaptation());
+  target_error_ = sim.hasTissue() && sim.numTargets() > 0 &&
+                  (options.target_error ||
+                   (sim.adaptation() && sim.adaptation()->settings().estimator == AdaptivitySettings::Estimator::Goal));
   std::error_code ec;
   fs::create_directories(dir_, ec);
   if (ec) throw std::runtime_error("cannot create output directory '" + dir_ + "': " + ec.message());
@@ -112,6 +116,16 @@ void RunRecorder::declareColumns() {
       col(n + "dist_" + sim_.needle(k).name(),
           [i, k](std::ostream& o, const Row& r) { o << r.obs.targets[i].tip_distances[k]; });
   }
+  if (target_error_)
+    for (int i = 0; i < sim_.numTargets(); ++i) {
+      const std::string n = sim_.targetName(i) + "_";
+      const double nan = std::numeric_limits<double>::quiet_NaN();
+      vec(n + "err_", [i, nan](const Row& r) { return r.obs.targets[i].has_error ? r.obs.targets[i].error : Vec3::Constant(nan); });
+      col(n + "err_bound", [i, nan](std::ostream& o, const Row& r) {
+        o << (r.obs.targets[i].has_error ? r.obs.targets[i].error_bound : nan);
+      });
+      vec(n + "qoi_", [i, nan](const Row& r) { return r.obs.targets[i].has_error ? r.obs.targets[i].qoi : Vec3::Constant(nan); });
+    }
   if (estimate_) {
     // With --error-estimate every step; otherwise (adaptivity) the last pass's estimate.
     col("eta_global", [](std::ostream& o, const Row& r) { o << r.obs.eta_global; });
@@ -135,6 +149,8 @@ void RunRecorder::declareColumns() {
 
 void RunRecorder::recordStep(const StepStats& s, double ms) {
   if (options_.error_estimate && sim_.hasTissue()) sim_.errorEstimate();  // every step, asked for
+  if (options_.target_error && target_error_ && sim_.stepIndex() % std::max(1, options_.target_error_every) == 0)
+    sim_.targetErrors();
   observe(sim_, obs_);
   obs_.stats = s;
   const Row row{obs_, ms};
@@ -342,6 +358,24 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                 {"displacement", arr(u)},
                 {"displacement_norm", u.norm()},
                 {"motion_since_start", (p - sim_.targetStart(i)).norm()}};
+      if (target_error_) {
+        const auto* errs = sim_.lastTargetErrors();
+        if (errs && i < static_cast<int>(errs->size()) && (*errs)[i].valid) {
+          const TargetError& e = (*errs)[i];
+          t["error_estimate"] = arr(e.estimate);
+          t["error_bound"] = e.bound;
+          t["error_component_bound"] = arr(e.component_bound);
+          t["qoi"] = arr(e.qoi);
+          t["qoi_radius"] = sim_.qoiRadius(i);
+          t["error_step"] = sim_.lastTargetErrorStep();
+          t["eta_energy"] = e.eta_u;
+          t["eta_dual"] = arr(e.eta_z);
+          t["dual_iterations"] = e.dual_iterations;
+        } else {
+          t["error_estimate"] = nullptr;
+          t["error_bound"] = nullptr;
+        }
+      }
       for (int k = 0; k < sim_.numNeedles(); ++k) {
         const std::string& nn = sim_.needle(k).name();
         t["tip_distance"][nn] = (sim_.needle(k).tipPosition() - p).norm();

@@ -321,11 +321,24 @@ void readInteraction(const SceneReader& r, const YAML::Node& n, Scene& s) {
 void readAdaptivity(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "adaptivity";
   if (!n.IsMap()) r.fail(p, "must be a map {estimator, marking, theta, max_level, ...}");
-  r.checkKeys(n, p, {"estimator", "marking", "theta", "max_level", "max_dofs", "tolerance", "every_steps", "coarsen"});
+  r.checkKeys(n, p, {"estimator", "goal", "marking", "theta", "max_level", "max_dofs", "tolerance", "every_steps",
+                     "coarsen"});
   AdaptivitySettings a;
   if (auto v = r.child(n, p, "estimator", false)) {
     const std::string e = r.string(v, p + ".estimator");
-    if (e != "spr") r.fail(p + ".estimator", "unknown estimator '" + e + "' (available: spr)");
+    if (e == "goal") a.estimator = AdaptivitySettings::Estimator::Goal;
+    else if (e != "spr") r.fail(p + ".estimator", "unknown estimator '" + e + "' (available: spr, goal)");
+  }
+  if (auto g = r.child(n, p, "goal", false)) {
+    const std::string q = p + ".goal";
+    if (a.estimator != AdaptivitySettings::Estimator::Goal) r.fail(q, "needs estimator: goal");
+    r.checkKeys(g, q, {"targets", "tolerance"});
+    const auto t = r.child(g, q, "targets", true);
+    if (!t.IsSequence() || t.size() == 0) r.fail(q + ".targets", "must be a non-empty list of target names");
+    for (size_t i = 0; i < t.size(); ++i) a.goal_targets.push_back(r.string(t[i], q + ".targets[" + std::to_string(i) + "]"));
+    a.goal_tolerance = r.positive(g, q, "tolerance");
+  } else if (a.estimator == AdaptivitySettings::Estimator::Goal) {
+    r.fail(p + ".goal", "missing: estimator goal needs goal: {targets: [names], tolerance: metres}");
   }
   if (auto v = r.child(n, p, "marking", false)) {
     const std::string m = r.string(v, p + ".marking");
@@ -402,8 +415,12 @@ void readTargets(const SceneReader& r, const YAML::Node& n, Scene& s) {
   std::set<std::string> names;
   for (size_t i = 0; i < n.size(); ++i) {
     const std::string p = "targets[" + std::to_string(i) + "]";
-    r.checkKeys(n[i], p, {"name", "point", "surface", "scale", "transform"});
+    r.checkKeys(n[i], p, {"name", "point", "surface", "scale", "transform", "radius"});
     TargetScene t;
+    if (auto v = r.child(n[i], p, "radius", false)) {
+      t.radius = r.number(v, p + ".radius");
+      if (!(t.radius >= 0)) r.fail(p + ".radius", "must be >= 0 (0: the point itself), got " + SceneReader::fmt(t.radius));
+    }
     t.key = p;
     t.name = r.string(r.child(n[i], p, "name", true), p + ".name");
     if (!std::regex_match(t.name, ident))
@@ -516,6 +533,14 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
     if (!s.has_tissue) r.fail("brain_shift", "needs a tissue (the scene has none)");
     readBrainShift(r, v, s);
   }
+  // Goal-oriented adaptivity names targets: they must exist (read after the adaptivity).
+  if (s.adaptivity)
+    for (size_t i = 0; i < s.adaptivity->goal_targets.size(); ++i) {
+      const std::string& name = s.adaptivity->goal_targets[i];
+      bool found = false;
+      for (const auto& t : s.targets) found = found || t.name == name;
+      if (!found) r.fail("adaptivity.goal.targets[" + std::to_string(i) + "]", "no target named '" + name + "' in targets");
+    }
   if (s.has_tissue && s.solver.mode == SolverSettings::Mode::Static && s.tissue.dirichlet.empty())
     r.fail("tissue.dirichlet", "static mode needs Dirichlet conditions that hold the body (none given)");
   return s;

@@ -41,6 +41,8 @@ void observe(const Simulation& sim, Observables& o) {
 
   const int nt = sim.numTargets();
   o.targets.resize(nt);
+  const std::vector<TargetError>* errs = sim.lastTargetErrors();
+  const long error_step = sim.lastTargetErrorStep();
   for (int i = 0; i < nt; ++i) {
     TargetObservation& t = o.targets[i];
     t.position = sim.targetPosition(i);
@@ -49,6 +51,13 @@ void observe(const Simulation& sim, Observables& o) {
     t.shift = t.position - sim.targetRest(i);
     t.tip_distances.resize(nn);
     for (int k = 0; k < nn; ++k) t.tip_distances[k] = (o.needles[k].tip - t.position).norm();
+    t.has_error = errs && i < static_cast<int>(errs->size()) && (*errs)[i].valid;
+    if (t.has_error) {
+      t.error_step = error_step;
+      t.error = (*errs)[i].estimate;
+      t.error_bound = (*errs)[i].bound;
+      t.qoi = (*errs)[i].qoi;
+    }
   }
 
   const ErrorEstimate* e = sim.lastEstimate();

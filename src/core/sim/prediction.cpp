@@ -2,6 +2,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <memory>
 #include <sstream>
 
@@ -15,13 +16,16 @@ namespace {
 
 // A sample from the simulation's observables (the same numbers the recorder and the node
 // report).
-PredictionSample sampleOf(const Simulation& sim, double t, int needle) {
+PredictionSample sampleOf(const Simulation& sim, double t, int needle, bool target_error) {
+  if (target_error && sim.numTargets() > 0) sim.targetErrors();
   const Observables o = observe(sim);
   PredictionSample s;
   s.t = t;
   for (const auto& tg : o.targets) {
     s.targets.push_back(tg.position);
     s.tip_distances.push_back(tg.tip_distances[needle]);
+    if (target_error)
+      s.target_error_bounds.push_back(tg.has_error ? tg.error_bound : std::numeric_limits<double>::quiet_NaN());
   }
   for (const auto& n : o.needles) {
     s.tips.push_back(n.tip);
@@ -79,7 +83,7 @@ Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, l
   // The plan replaces the needle's commands from now on; the other needles hold what they
   // were commanded (a copy of their trajectories).
   sim.needle(plan.needle).trajectory().replaceFrom(now, dt, plan.waypoints);
-  out.samples.push_back(sampleOf(sim, 0.0, plan.needle));
+  out.samples.push_back(sampleOf(sim, 0.0, plan.needle, plan.target_error));
   out.max_dofs = sim.numDofs();
   double next = plan.sample_period;
   for (long k = 1; k <= steps; ++k) {
@@ -89,7 +93,7 @@ Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, l
     out.max_dofs = std::max(out.max_dofs, sim.numDofs());
     const double t = sim.time() - now;
     if (k == steps || t >= next - 1e-9 * dt) {
-      out.samples.push_back(sampleOf(sim, t, plan.needle));
+      out.samples.push_back(sampleOf(sim, t, plan.needle, plan.target_error));
       while (next <= t + 1e-9 * dt) next += plan.sample_period > 0 ? plan.sample_period : dt;
     }
   }

@@ -18,7 +18,7 @@ HexMesh buildTissueMesh(const TissueScene& t) {
   return HexMesh::mappedBlock(t.geometry.corners, t.cells);
 }
 
-Simulation::Simulation(const Scene& scene) : scene_(scene), dt_(scene.dt) {
+Simulation::Simulation(const Scene& scene, const Options& options) : scene_(scene), dt_(scene.dt), options_(options) {
   for (const auto& n : scene.needles) needles_.push_back(std::make_unique<NeedleBody>(n, scene.solver));
   if (!scene.has_tissue) return;
   HexMesh mesh;
@@ -47,6 +47,16 @@ Simulation::Simulation(const Scene& scene) : scene_(scene), dt_(scene.dt) {
   embedProbes();
   for (const auto& t : scene.targets) targets_.push_back({t.name, t.point, EmbeddedPoint{}, t.key, t.surface});
   embedTargets();
+  {
+    // The regularised point of the goal estimate: a ball of half the finest element's edge.
+    const auto X = tissue_->mesh().elementCorners(0);
+    const double edge = (X.colwise().maxCoeff() - X.colwise().minCoeff()).minCoeff();
+    qoi_radius_ = 0.5 * edge / std::pow(2.0, scene.adaptivity ? scene.adaptivity->max_level : 0);
+  }
+  if (scene.adaptivity && scene.adaptivity->estimator == AdaptivitySettings::Estimator::Goal) {
+    options_.target_errors = true;
+    for (const auto& name : scene.adaptivity->goal_targets) goal_targets_.push_back(findTarget(name));
+  }
   PointLocator locator(tissue_->mesh());
   // A needle must start outside the tissue: puncture happens on the surface.
   for (size_t n = 0; n < needles_.size(); ++n)
@@ -83,6 +93,16 @@ Simulation::Simulation(const Simulation& o)
       estimate_(o.estimate_),
       estimate_step_(-1),
       estimate_ever_(o.estimate_ever_),
+      options_(o.options_),
+      target_errors_(o.target_errors_),
+      target_errors_step_(-1),
+      errors_ever_(o.errors_ever_),
+      last_error_step_(o.last_error_step_),
+      target_error_steps_(o.target_error_steps_.size(), -1),
+      shifted_(o.shifted_),
+      shift_errors_(o.shift_errors_),
+      qoi_radius_(o.qoi_radius_),
+      goal_targets_(o.goal_targets_),
       contact_signature_(o.contact_signature_),
       step_(o.step_),
       step_base_(o.step_base_),
@@ -148,7 +168,7 @@ void Simulation::preStep() {
     scale = r.load_scale;
     checkState();
     if (!rough) break;
-    const AdaptationResult a = pass < kMaxShiftPasses ? adaptation_->adapt(errorEstimate()) : AdaptationResult{};
+    const AdaptationResult a = pass < kMaxShiftPasses ? adaptationPass() : AdaptationResult{};
     if (a.changed) {
       rebuildTissue(false);
     } else {
@@ -159,14 +179,21 @@ void Simulation::preStep() {
     shift_->rebind(organ_.get());
   }
   if (t >= 0) total.target = scene_.brain_shift->target;
+  // The shift's own error on the targets, before the estimate's reference becomes the
+  // shifted state (the insertion's estimates add it).
+  if (options_.target_errors && numTargets() > 0) {
+    shift_errors_ = targetErrors();
+    if (t >= 0 && scene_.brain_shift->target_shift) shift_errors_[t].valid = false;
+    shifted_ = tissue_->positions();
+    forgetEstimates();
+  }
   applySupport();
   if (adaptation_) {
     // From now on the mesh adapts to the insertion: the estimate measures the stress change
     // since the shift, and the shift's refinement stays.
     adaptation_->keepCurrentRefinement();
     reference_ = tissue_->positions();
-    estimator_.reset();
-    estimate_step_ = -1;
+    forgetEstimates();
   }
   total.ms = msSince(t0);
   shift_result_ = total;
@@ -244,6 +271,8 @@ int Simulation::setTarget(const std::string& name, const Vec3& point) {
   } else {
     targets_[i] = {name, point, ep, "set_target", nullptr};
   }
+  qois_.clear();  // (a new or moved target: its regularised point is made again)
+  target_error_steps_.assign(target_error_steps_.size(), -1);
   target_start_[i] = targetPosition(i);
   return i;
 }
@@ -285,13 +314,107 @@ const ErrorEstimate& Simulation::errorEstimate() const {
   return estimate_;
 }
 
+void Simulation::forgetEstimates() {
+  estimator_.reset();
+  estimate_step_ = -1;
+  qois_.clear();
+  target_errors_step_ = -1;
+  goal_primal_step_ = -1;
+  target_error_steps_.assign(target_error_steps_.size(), -1);
+}
+
+double Simulation::qoiRadius(int i) const {
+  const double r = i < static_cast<int>(scene_.targets.size()) && targets_[i].key != "set_target" ? scene_.targets[i].radius : -1;
+  return r >= 0 ? r : qoi_radius_;
+}
+
+const TargetError& Simulation::targetError(int i) const {
+  if (target_errors_.size() != targets_.size() || target_error_steps_.size() != targets_.size()) {
+    target_errors_.resize(targets_.size());
+    target_error_steps_.resize(targets_.size(), -1);
+  }
+  if (target_error_steps_[i] == step_ && target_errors_step_ != -1) return target_errors_[i];
+  const HexMesh& mesh = tissue_->mesh();
+  if (qois_.size() != targets_.size()) {
+    const PointLocator locator(mesh);
+    qois_.clear();
+    for (int k = 0; k < numTargets(); ++k) qois_.push_back(targetQoi(mesh, locator, targets_[k].planned, qoiRadius(k)));
+  }
+  // The field the estimate is of: the change since the brain shift when there was one (the
+  // insertion's), else the displacement from rest. On an adaptive mesh that is also the SPR
+  // estimate's reference; on a uniform one the primal estimate is made for it here.
+  const VecX* ref = reference_.size() ? &reference_ : shifted_.size() ? &shifted_ : nullptr;
+  const ErrorEstimate* primal = &errorEstimate();  // (and estimator_ for this mesh)
+  if (ref && ref != &reference_) {
+    if (goal_primal_step_ != step_) {
+      goal_primal_ = estimator_->estimate(tissue_->positions(), ref);
+      goal_primal_step_ = step_;
+    }
+    primal = &goal_primal_;
+  }
+  Eigen::MatrixXd Z;
+  int iterations = 0;
+  TargetError e;
+  if (tissue_->solveDual(qois_[i].load(mesh), Z, iterations))
+    e = goalEstimate(*estimator_, tissue_->positions(), ref, *primal, Z, qois_[i], mesh, mesh.restPositions());
+  e.dual_iterations = iterations;
+  // After a brain shift the estimate is of the change since; the shift's own error adds
+  // (errors add, so do their bounds). A shift scaled by target_shift prescribes that
+  // target's displacement: its error is in the load scale, not added.
+  if (e.valid && ref && i < static_cast<int>(shift_errors_.size()) && shift_errors_[i].valid) {
+    e.estimate += shift_errors_[i].estimate;
+    e.component_bound += shift_errors_[i].component_bound;
+    e.bound += shift_errors_[i].bound;
+  }
+  if (e.valid && ref && i < static_cast<int>(shift_errors_.size())) e.qoi += shift_errors_[i].qoi;
+  target_errors_[i] = std::move(e);
+  target_error_steps_[i] = step_;
+  target_errors_step_ = step_;
+  last_error_step_ = step_;
+  errors_ever_ = true;
+  return target_errors_[i];
+}
+
+const std::vector<TargetError>& Simulation::targetErrors() const {
+  for (int i = 0; i < numTargets(); ++i) targetError(i);
+  return target_errors_;
+}
+
+AdaptationResult Simulation::adaptationPass() {
+  const ErrorEstimate& est = errorEstimate();
+  if (goal_targets_.empty()) return adaptation_->adapt(est);
+  // Goal-oriented: the element indicators of the controlled targets, each relative to the
+  // tolerance; refinement only while a target's bound is above it.
+  const double tol = scene_.adaptivity->goal_tolerance;
+  ErrorEstimate goal;
+  goal.eta.assign(est.eta.size(), 0.0);
+  bool refine = false;
+  for (int t : goal_targets_) {
+    const TargetError& e = targetError(t);
+    if (!e.valid) {
+      refine = true;  // no estimate: fall back on the energy estimate's pattern
+      for (size_t k = 0; k < goal.eta.size(); ++k) goal.eta[k] += est.eta[k] / std::max(est.max, 1e-300);
+      continue;
+    }
+    refine = refine || e.bound > tol;
+    for (size_t k = 0; k < goal.eta.size(); ++k) goal.eta[k] += e.indicator[k] / tol;
+  }
+  double sum = 0;
+  for (double v : goal.eta) {
+    goal.max = std::max(goal.max, v);
+    sum += v * v;
+  }
+  goal.global = std::sqrt(sum);
+  return adaptation_->adapt(goal, refine);
+}
+
 void Simulation::rebuildTissue(bool persistent_loads) {
   const VecX x = adaptation_->transfer(tissue_->positions());
   const VecX v = persistent_loads ? adaptation_->transfer(tissue_->velocities()) : VecX::Zero(x.size());
   if (reference_.size()) reference_ = adaptation_->transfer(reference_);
+  if (shifted_.size()) shifted_ = adaptation_->transfer(shifted_);
   const auto& act = adaptation_->active();
-  estimator_.reset();
-  estimate_step_ = -1;
+  forgetEstimates();
   HexMesh mesh = act.mesh;
   if (immersed_) setFractions(mesh, act.cell);
   tissue_ = std::make_unique<TissueBody>(std::move(mesh), scene_.tissue, scene_.solver, scene_.file, act.hanging);
@@ -319,9 +442,10 @@ AdaptationResult Simulation::coarsenElements(const std::vector<int>& elements) {
 
 void Simulation::adaptMesh() {
   const auto t0 = steadyNow();
-  const ErrorEstimate& est = errorEstimate();
+  errorEstimate();
+  for (int t : goal_targets_) targetError(t);
   const auto t1 = steadyNow();
-  const AdaptationResult r = adaptation_->adapt(est);
+  const AdaptationResult r = adaptationPass();
   const auto t2 = steadyNow();
   if (r.changed) rebuildTissue();
   const auto t3 = steadyNow();
@@ -407,6 +531,15 @@ const StepStats& Simulation::step() {
     } else {
       if (tissue_) add(dynamic ? tissue_->stepDynamic(dt_) : tissue_->solveStatic());
       for (auto& nd : needles_) add(dynamic ? nd->stepDynamic(time(), dt_) : nd->solveStatic(time() + dt_));
+      // A static load step on an adaptive mesh: solve, estimate, adapt and solve again on
+      // the new mesh until it stays as it is (the state a step ends in is an equilibrium
+      // on the mesh it is reported on).
+      if (!dynamic && tissue_ && adaptation_)
+        for (int pass = 1; pass < kMaxShiftPasses; ++pass) {
+          adaptMesh();
+          if (!last_.mesh_changed) break;
+          add(tissue_->solveStatic());
+        }
     }
   } catch (const NumericalError& e) {
     throw NumericalError(k, std::string(e.what()) + " (step " + std::to_string(k) + ")");
@@ -417,7 +550,7 @@ const StepStats& Simulation::step() {
   // new mesh. (The estimate of this step stays available to outputs when nothing changed.)
   // Contact events (first touch, puncture, a new or released constraint point) change the
   // load abruptly and locally: the mesh adapts at once rather than up to every_steps later.
-  if (adaptation_) {
+  if (adaptation_ && (scene_.solver.mode == SolverSettings::Mode::Dynamic || interaction_)) {
     long signature = 0;
     if (interaction_)
       for (int n = 0; n < numNeedles(); ++n)

@@ -103,4 +103,26 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
   return st;
 }
 
+LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m, double c_k, const Eigen::MatrixXd& B,
+                                               Eigen::MatrixXd& X, double tolerance, int max_iterations,
+                                               bool& converged) {
+  LinearSolveStats st;
+  if (!chol_.factored()) refactor(mass_free, c_m, c_k, st);
+  const auto t0 = steadyNow();
+  auto A = [&](const VecX& v, VecX& out) { apply(mass_free, c_m, c_k, v, out); };
+  auto M = [&](const VecX& r, VecX& z) { chol_.solve(r, z); };
+  X.setZero(B.rows(), B.cols());
+  converged = true;
+  for (Eigen::Index j = 0; j < B.cols(); ++j) {
+    VecX x = VecX::Zero(B.rows());
+    const PcgResult r = pcg(A, M, B.col(j), x, tolerance, max_iterations);
+    X.col(j) = x;
+    st.iterations = std::max(st.iterations, r.iterations);
+    st.relative_residual = std::max(st.relative_residual, r.relative_residual);
+    converged = converged && r.converged && x.allFinite();
+  }
+  st.solve_ms += msSince(t0);
+  return st;
+}
+
 }  // namespace needle_sim

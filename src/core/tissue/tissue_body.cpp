@@ -119,6 +119,27 @@ StepStats TissueBody::freeMotion(double h) {
   return st;
 }
 
+bool TissueBody::solveDual(const Eigen::MatrixXd& G, Eigen::MatrixXd& Z, int& iterations, int max_iterations) const {
+  const int nf = dofs_.numFree();
+  Eigen::MatrixXd Gf(nf, G.cols()), Zf;
+  VecX col;
+  for (Eigen::Index j = 0; j < G.cols(); ++j) {
+    dofs_.gather(G.col(j), col);
+    Gf.col(j) = col;
+  }
+  bool converged = false;
+  // The tangent at the current rotations (the model's, as the last step left them).
+  const LinearSolveStats st = solver_->solveWithFactor(mass_free_, 0.0, 1.0, Gf, Zf, 1e-8, max_iterations, converged);
+  iterations = st.iterations;
+  Z.resize(G.rows(), G.cols());
+  VecX full;
+  for (Eigen::Index j = 0; j < G.cols(); ++j) {
+    dofs_.scatter(Zf.col(j), full);
+    Z.col(j) = full;
+  }
+  return converged;
+}
+
 double TissueBody::kineticEnergy() const { return 0.5 * (mass_.array() * v_.array().square()).sum(); }
 
 void TissueBody::setState(const VecX& x, const VecX& v) {

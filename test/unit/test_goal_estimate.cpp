@@ -1,0 +1,147 @@
+// The goal-oriented estimate of target-displacement errors (adapt/goal_estimator.hpp):
+// zero for a linear field; on a static box its effectivity against a Richardson-extrapolated
+// reference lies in [0.5, 2] and its bound covers the true error; goal-oriented refinement
+// brings a target's bound below its tolerance; bad inputs name their key; a target set at
+// run time joins the estimate. (The full tables: scripts/target_error_study.py.)
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "fixtures.hpp"
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/observables.hpp"
+#include "needle_sim/sim/simulation.hpp"
+
+using namespace needle_sim;
+using needle_sim_test::sourcePath;
+
+namespace {
+
+const std::string kBox = sourcePath("test/data/target_error/box_body_force.yaml");
+
+Simulation::Options withErrors() {
+  Simulation::Options o;
+  o.target_errors = true;
+  return o;
+}
+
+// The regularised displacement and the estimate of target i after one static solve.
+struct Solved {
+  Vec3 qoi, estimate;
+  double bound;
+  int dofs;
+};
+Solved solve(const std::string& cells, int target) {
+  Simulation sim(loadScene(kBox, {"tissue.grid.cells=" + cells, "targets.0.radius=0.00125", "targets.1.radius=0.00125",
+                                  "targets.2.radius=0.00125"}),
+                 withErrors());
+  sim.step();
+  const TargetError& e = sim.targetErrors()[target];
+  EXPECT_TRUE(e.valid);
+  return {e.qoi, e.estimate, e.bound, sim.numDofs()};
+}
+
+}  // namespace
+
+TEST(GoalEstimate, ALinearFieldHasNoError) {
+  // Every face prescribed with a linear displacement field: the FE solution is exact, SPR
+  // recovers its constant stress exactly, and the estimate vanishes for any target.
+  Scene sc = loadScene(kBox, {"tissue.body_force=[0,0,0]"});
+  sc.tissue.dirichlet.clear();
+  const Mat3 F = (Mat3() << 1e-3, 2e-4, -3e-4, 1e-4, -5e-4, 2e-4, 3e-4, 1e-4, 7e-4).finished();
+  for (int d = 0; d < 3; ++d)
+    for (double side : {0.0, 1.0}) {
+      DirichletCondition dc;
+      dc.region.box.min = Vec3(-0.001, -0.001, -0.001);
+      dc.region.box.max = Vec3(0.041, 0.021, 0.021);
+      const double at = side * Vec3(0.04, 0.02, 0.02)[d];
+      dc.region.box.min[d] = at - 1e-4;
+      dc.region.box.max[d] = at + 1e-4;
+      dc.key = "dirichlet";
+      sc.tissue.dirichlet.push_back(dc);
+    }
+  Simulation sim(sc, withErrors());
+  // Prescribe the linear field on the boundary (the Dirichlet values), solve.
+  VecX x = sim.tissue().positions();
+  const HexMesh& mesh = sim.tissue().mesh();
+  for (int i = 0; i < mesh.numNodes(); ++i) node3(x, i) = mesh.node(i) + F * mesh.node(i);
+  sim.tissue().setPrescribedPositions(x);
+  sim.step();
+  for (const TargetError& e : sim.targetErrors()) {
+    ASSERT_TRUE(e.valid);
+    // Round-off: displacements of 1e-5 m from positions of 1e-2 m carry about 1e-11 of
+    // relative noise into the stresses.
+    EXPECT_LT(e.estimate.norm(), 1e-10 * e.qoi.norm()) << e.estimate.transpose();
+    EXPECT_LT(e.bound, 1e-8 * e.qoi.norm());
+    EXPECT_GT(e.qoi.norm(), 1e-6);
+  }
+}
+
+TEST(GoalEstimate, EffectivityOnAStaticBoxAgainstAnExtrapolatedReference) {
+  // The interior target, z (the body force's direction): reference by Richardson
+  // extrapolation from 8x4x4, 16x8x8, 32x16x16 with the rate the three give.
+  const Solved a = solve("[8,4,4]", 0), b = solve("[16,8,8]", 0), c = solve("[32,16,16]", 0);
+  const double d1 = b.qoi.z() - a.qoi.z(), d2 = c.qoi.z() - b.qoi.z();
+  ASSERT_GT(d1 * d2, 0) << "monotone convergence";
+  const double r = d1 / d2, ref = c.qoi.z() + d2 / (r - 1);
+  std::printf("rate %.2f, reference %.6e m\n", std::log2(r), ref);
+  EXPECT_GT(std::log2(r), 0.8);  // between the singular edges' rate and 2
+  for (const Solved* run : {&a, &b}) {
+    const double err = ref - run->qoi.z();
+    const double eff = run->estimate.z() / err;
+    std::printf("%d DOFs: true error %.3e m, estimate %.3e m, effectivity %.2f, bound %.3e m\n", run->dofs, err,
+                run->estimate.z(), eff, run->bound);
+    EXPECT_GE(eff, 0.5);
+    EXPECT_LE(eff, 2.0);
+    EXPECT_GE(run->bound, std::abs(err));  // the bound covers the true error
+  }
+}
+
+TEST(GoalEstimate, GoalOrientedRefinementBringsTheBoundBelowItsTolerance) {
+  // From 8x4x4: the interior target's bound on the coarse mesh, then goal-oriented passes
+  // with a tolerance of half of it.
+  Simulation coarse(loadScene(kBox, {"targets.0.radius=0.00125"}), withErrors());
+  coarse.step();
+  const double b0 = coarse.targetErrors()[0].bound;
+  Scene sc = loadScene(kBox, {"targets.0.radius=0.00125",
+                              "adaptivity={estimator: goal, goal: {targets: [interior], tolerance: " +
+                                  std::to_string(0.5 * b0) + "}, marking: max, theta: 0.3, max_level: 2}"});
+  Simulation sim(sc);
+  sim.step();  // a static step on an adaptive mesh: solve, estimate, refine until settled
+  const TargetError& e = sim.targetErrors()[0];
+  std::printf("bound %.3e -> %.3e m with %d DOFs (uniform 8x4x4: %d)\n", b0, e.bound, sim.numDofs(), coarse.numDofs());
+  EXPECT_LE(e.bound, 0.5 * b0);
+  EXPECT_GT(sim.numDofs(), coarse.numDofs());
+}
+
+TEST(GoalEstimate, BadInputsAndTargetsSetAtRunTime) {
+  auto key = [](const std::vector<std::string>& sets) {
+    try {
+      loadScene(kBox, sets);
+    } catch (const InputError& e) {
+      return e.key();
+    }
+    return std::string("<accepted>");
+  };
+  EXPECT_EQ(key({"adaptivity={estimator: goal, goal: {targets: [nowhere], tolerance: 1.0e-6}, theta: 0.3}"}),
+            "adaptivity.goal.targets[0]");
+  EXPECT_EQ(key({"adaptivity={estimator: goal, goal: {targets: [interior], tolerance: 0}, theta: 0.3}"}),
+            "adaptivity.goal.tolerance");
+  EXPECT_EQ(key({"adaptivity={estimator: goal, goal: {targets: [interior], tolerance: .nan}, theta: 0.3}"}),
+            "adaptivity.goal.tolerance");
+  EXPECT_EQ(key({"adaptivity={estimator: goal, theta: 0.3}"}), "adaptivity.goal");
+  EXPECT_EQ(key({"targets.0.radius=-1"}), "targets[0].radius");
+  // set_target during a run: the new target joins the estimate.
+  Simulation sim(loadScene(kBox), withErrors());
+  sim.step();
+  EXPECT_EQ(sim.targetErrors().size(), 3u);
+  sim.setTarget("late", Vec3(0.02, 0.01, 0.01));
+  sim.step();
+  ASSERT_EQ(sim.targetErrors().size(), 4u);
+  EXPECT_TRUE(sim.targetErrors()[3].valid);
+  EXPECT_GT(sim.targetErrors()[3].bound, 0.0);
+  const Observables o = observe(sim);
+  EXPECT_TRUE(o.targets[3].has_error);
+  EXPECT_EQ(o.targets[3].error_bound, sim.targetErrors()[3].bound);
+}
