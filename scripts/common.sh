@@ -16,7 +16,7 @@ PACKAGES=(
   ros-sensor-msgs ros-nav-msgs ros-std-srvs ros-visualization-msgs ros-trajectory-msgs libtrajectory-msgs-dev
   libdiagnostic-updater-dev libtf2-ros-dev libactionlib-dev libactionlib-msgs-dev ros-actionlib-msgs
   libdynamic-reconfigure-config-init-mutex-dev
-  libnodeletlib-dev libnodeletlib-tools pluginlib-dev
+  libnodeletlib-dev libnodeletlib-tools pluginlib-dev librosbag-storage-dev
   # what a Python client of the node imports (messages, services, the action, tf, reconfigure)
   python3-rosbag python3-rospy python3-geometry-msgs python3-nav-msgs python3-sensor-msgs python3-visualization-msgs
   python3-diagnostic-msgs python3-std-srvs python3-tf2-msgs python3-tf2-ros python3-trajectory-msgs
@@ -25,7 +25,7 @@ PACKAGES=(
   rviz xvfb python3-pil
   python3-rostest librostest-dev libgtest-dev
   # core library
-  libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev libcli11-dev libassimp-dev
+  libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev libcli11-dev libassimp-dev libnlopt-dev
   # plots
   python3-matplotlib python3-yaml
 )

@@ -7,7 +7,8 @@ E = 50 MPa, dt = 1 ms, 10 mm/s, friction 0.05, puncture 0.05 N). Each run insert
   - the tool finishes (no NaN/Inf, no divergence: exit status 0; 3 is a detected failure),
   - the energy is bounded: with the needle held, the kinetic energy of the last 0.15 s stays
     below that of the first 0.15 s of the hold (no growth without input),
-  - the constraint solver converged (largest residual reported, <= 1e-6),
+  - the constraint solve converged at every step (no unconverged step in summary.json, and
+    the largest residual reported <= 1e-6),
   - no element is inverted at the end (inverted elements are reported by the run),
   - the needle never ends up inside the tissue unpunctured (the tip passing through the
     surface without a puncture event is a contact failure),
@@ -21,6 +22,14 @@ per parameter value).
 Sample runs:
     scripts/stability_sweep.py --out results/stability          # the full sweep (~40 runs)
     scripts/stability_sweep.py --quick --out /tmp/stability     # the CI subset: the extremes
+    scripts/stability_sweep.py --only "tissue young" --out /tmp/soft  # one axis
+
+The tissue-stiffness axis varies the tissue's Young's modulus at the paper's needle (1 kPa,
+softer than brain, to the phantom's 10 MPa); the puncture and cutting strengths are scaled
+with it (E / 10 MPa, at least 1 mN), so the tissue deforms by about as much as the paper's
+phantom before it is punctured rather than being pushed through its clamp. The grip axis
+adds the shaft's radial pressure (interaction.grip_pressure), which makes the friction
+problem harder (every shaft point carries a bound).
 """
 import argparse
 import csv
@@ -55,15 +64,21 @@ KNOWN_LIMITS = {("puncture force [N]", 10.0)}
 
 
 # (parameter, label of a value, value, overrides). Base values are marked in the table.
-def sweep(quick):
+def sweep(quick, only=None):
     runs = []
 
     def add(param, values, fn, base):
+        if only and only not in param:
+            return
         inside = [v for v in values if (param, v) not in KNOWN_LIMITS]
         vs = [inside[0], inside[-1]] if quick else values
         for v in vs:
             runs.append((param, v, fn(v), v == base))
 
+    add("tissue young [Pa]", [1e3, 6e3, 1e5, 1e6, 1e7], lambda E: [
+        f"tissue.material.young={E:.6g}", f"interaction.puncture_force={max(0.05 * E / TISSUE_E, 1e-3):.6g}",
+        f"interaction.cutting_force={max(0.02 * E / TISSUE_E, 1e-3):.6g}"], 1e7)
+    add("grip pressure [Pa]", [0, 100, 500, 2000, 10000], lambda p: [f"interaction.grip_pressure={p}"], 0)
     add("stiffness ratio", [1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7], lambda r: [f"needle.young={r * TISSUE_E:.6g}"], None)
     add("poisson", [0.3, 0.4, 0.45, 0.49, 0.499], lambda nu: [f"tissue.material.poisson={nu}"], 0.4)
     add("dt [s]", [1e-4, 1e-3, 5e-3, 1e-2, 5e-2], lambda dt: [f"time.dt={dt}"], 1e-3)
@@ -98,7 +113,7 @@ def overrides(spec):
 
 def judge(run_dir, rc, t_end):
     out = {"status": "failed" if rc else "ok", "reason": "", "eta_rel": math.nan, "ke_growth": math.nan,
-           "constraint_residual": math.nan, "inverted": 0, "tip_advance_mm": math.nan, "punctured": "", "steps": 0}
+           "constraint_residual": math.nan, "unconverged_steps": 0, "inverted": 0, "tip_advance_mm": math.nan, "punctured": "", "steps": 0}
     try:
         with open(os.path.join(run_dir, "summary.json")) as f:
             s = json.load(f)
@@ -113,6 +128,7 @@ def judge(run_dir, rc, t_end):
     out["inverted"] = s.get("tissue", {}).get("inverted_elements", 0)
     inter = s.get("interaction", {})
     out["constraint_residual"] = inter.get("constraint_residual_max", math.nan)
+    out["unconverged_steps"] = inter.get("unconverged_steps", 0)
     with open(os.path.join(run_dir, "timeseries.csv"), newline="") as f:
         rows = list(csv.DictReader(f))
     t = [float(r["t"]) for r in rows]
@@ -132,6 +148,8 @@ def judge(run_dir, rc, t_end):
     reasons = []
     if not (out["ke_growth"] <= 1.0 or max(last or [0]) < 1e-20):
         reasons.append(f"kinetic energy grew x{out['ke_growth']:.3g} while held")
+    if out["unconverged_steps"]:
+        reasons.append(f"{out['unconverged_steps']} steps with an unconverged constraint solve")
     if not out["constraint_residual"] <= 1e-6:
         reasons.append(f"constraint residual {out['constraint_residual']:.2e}")
     if out["inverted"]:
@@ -176,13 +194,14 @@ def main():
     ap.add_argument("--tool", default=package_paths.tool())
     ap.add_argument("--quick", action="store_true", help="only the extremes of each range (the CI subset)")
     ap.add_argument("--no-plot", action="store_true")
+    ap.add_argument("--only", help="only the axes whose name contains this (e.g. 'tissue young')")
     ap.add_argument("--expect-pass", action="store_true", help="exit 1 unless every run passes")
     args = ap.parse_args()
     if not os.access(args.tool, os.X_OK):
         sys.exit(f"stability_sweep: no needle_sim tool at {args.tool}")
     os.makedirs(args.out, exist_ok=True)
     table = []
-    for param, value, spec, base in sweep(args.quick):
+    for param, value, spec, base in sweep(args.quick, args.only):
         sets, t_end = overrides(spec)
         name = "".join(c if c.isalnum() else "_" for c in f"{param}_{value}")
         d = os.path.join(args.out, name)

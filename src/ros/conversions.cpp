@@ -113,6 +113,8 @@ needle_sim::SimStatus statusMessage(const StepFrame& f, const std::string& frame
   st.clamped_commands = f.clamped;
   st.linear_iterations = o.stats.linear_iterations;
   st.constraint_points = o.stats.constraint_points;
+  st.constraint_residual = f.constraint_residual;
+  st.unconverged_steps = f.unconverged;
   st.needles = l.needles;
   st.eta_relative = o.eta_relative;
   st.display_range = f.display_range;

@@ -309,7 +309,9 @@ void SimulatorRos::stepOnce() {
   if (failure_.empty()) {
     const auto t0 = ros::WallTime::now();
     try {
-      sim_->step();
+      const StepStats& s = sim_->step();
+      unconverged_steps_ += s.constraint_converged ? 0 : 1;
+      constraint_residual_ = s.constraint_residual;
     } catch (const NumericalError& e) {
       failure_ = e.what();
       ROS_ERROR("needle_sim: numerical failure, stepping stopped until ~reset: %s", e.what());

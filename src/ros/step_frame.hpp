@@ -24,7 +24,8 @@ struct StepFrame {
   double step_ms = 0, step_ms_max = 0, publish_ms = 0, rtf = 0, display_range = 0, lag = 0;
   RealtimeSchedule::Counts deadlines;
   std::array<uint64_t, kGuardRules> guard{};
-  uint64_t rejected = 0, clamped = 0;
+  uint64_t rejected = 0, clamped = 0, unconverged = 0;
+  double constraint_residual = 0;
   int primary_target = 0;
   bool send_target_point = false, send_target_state = false;  // subscribed
 };

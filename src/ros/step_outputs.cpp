@@ -41,6 +41,8 @@ void SimulatorRos::publishStep(double ms) {
   f.guard = guard_->counts();
   f.rejected = guard_->rejected();
   f.clamped = guard_->limited();
+  f.unconverged = unconverged_steps_;
+  f.constraint_residual = constraint_residual_;
   f.display_range = display_->range();
   if (failure_.empty()) {  // never publish a state that failed: the status alone
     observe(*sim_, obs_);
@@ -105,6 +107,10 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   }
   if (reconfigure_ && !reconfigure_->lastRefusal().empty())
     warnings.push_back("the last reconfigure was refused: " + reconfigure_->lastRefusal());
+  if (unconverged_steps_ > diag_unconverged_)
+    warnings.push_back(std::to_string(unconverged_steps_ - diag_unconverged_) +
+                       " steps since the last report whose needle-tissue constraint solve missed its tolerance "
+                       "(interaction.solver; last residual " + std::to_string(constraint_residual_) + ")");
   if (lag > 10 * scene_.dt) warnings.push_back("the simulation is " + std::to_string(lag) + " s behind the clock");
   if (!failure_.empty()) {
     stat.summary(diagnostic_msgs::DiagnosticStatus::ERROR, "numerical failure: " + failure_);
@@ -121,6 +127,8 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   stat.add("slowed_down_last_second", lim - diag_limited_);
   diag_rejected_ = rej;
   diag_limited_ = lim;
+  stat.add("unconverged_steps", unconverged_steps_);
+  diag_unconverged_ = unconverged_steps_;
   stat.add("scene", scene_.name);
   stat.add("step", sim_->stepIndex());
   stat.add("sim_time", sim_->time());

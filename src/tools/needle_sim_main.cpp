@@ -8,6 +8,7 @@
 //   needle_sim bench --steps 30
 //   needle_sim soak config/scenes/phantom_insertion_adaptive.yaml --steps 100000
 //   needle_sim predict config/scenes/phantom_insertion_adaptive.yaml --duration 10 --advance 0.02 --dt 0.01
+//   needle_sim calibrate phantom_insertion_8x4x4.yaml --data force.csv --fit interaction.cutting_force --out /tmp/c
 //
 // Exit status: 0 success, 2 invalid input (scene, overrides, command line),
 // 3 numerical failure (NaN/Inf, divergence, solver failure; reported with the step).
@@ -15,18 +16,23 @@
 #include <nlohmann/json.hpp>
 #include <fstream>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
 
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/denormals.hpp"
+#include "needle_sim/calibration/force_record.hpp"
+#include "needle_sim/sim/command_replay.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/io/run_recorder.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
+#include "bag_input.hpp"
 #include "bench.hpp"
+#include "calibrate.hpp"
 #include "predict.hpp"
 #include "share_dir.hpp"
 #include "soak.hpp"
@@ -38,17 +44,41 @@ namespace {
 constexpr int kExitInput = 2;
 constexpr int kExitNumerical = 3;
 
+// A recorded session driving the run (run --bag).
+struct BagRun {
+  std::string bag, pose_topic, wrench_topic, needle;
+  bool given() const { return !bag.empty(); }
+};
+
 int runCommand(const std::string& scene_path, const std::string& out_dir, const std::vector<std::string>& sets,
-               bool quiet, const RunRecorder::Options& options) {
+               bool quiet, const RunRecorder::Options& options, const BagRun& bag_run) {
   Scene scene;
   std::unique_ptr<Simulation> sim;
+  std::unique_ptr<CommandReplay> replay;
+  BagSession session;
+  int bag_needle = 0;
   try {
     scene = loadScene(scene_path, sets);
+    if (bag_run.given()) {
+      if (bag_run.pose_topic.empty()) throw InputError("", "--pose-topic", "needed with --bag");
+      if (scene.needles.empty()) throw InputError(scene_path, "needle", "--bag drives a needle: the scene has none");
+      if (!bag_run.needle.empty()) {
+        bag_needle = -1;
+        for (size_t i = 0; i < scene.needles.size(); ++i)
+          if (scene.needles[i].name == bag_run.needle) bag_needle = static_cast<int>(i);
+        if (bag_needle < 0) throw InputError(scene_path, "--needle", "no needle named '" + bag_run.needle + "'");
+      }
+      session = readBagSession(bag_run.bag, bag_run.pose_topic, bag_run.wrench_topic, bag_needle);
+      // The recording drives the needle from its rest pose, for as long as it lasts.
+      scene.needles[bag_needle].motion.clear();
+      scene.duration = std::max(session.end, scene.dt);
+    }
     if (options.target_error && scene.targets.empty())
       throw InputError(scene_path, "--target-error", "the scene has no targets to estimate the error of");
     Simulation::Options so;
     so.target_errors = options.target_error;
     sim = std::make_unique<Simulation>(scene, so);
+    if (bag_run.given()) replay = std::make_unique<CommandReplay>(*sim, CommandLimits{}, session.commands);
   } catch (const InputError& e) {
     std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
     return kExitInput;
@@ -80,10 +110,17 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   using clock = std::chrono::steady_clock;
   const auto t_start = clock::now();
   auto t_report = t_start;
+  std::vector<double> sim_t, sim_force;  // the bag's needle's axial holder force, for the measured one
   for (long k = 0; k < n; ++k) {
     const auto t0 = clock::now();
     try {
+      if (replay) replay->beforeStep(*sim);
       const StepStats& s = sim->step();
+      if (replay) {
+        const NeedleBody& nb = sim->needle(bag_needle);
+        sim_t.push_back(sim->time());
+        sim_force.push_back(nb.baseForce().dot(nb.trajectory().pose(sim->time()).direction));
+      }
       rec->recordStep(s, std::chrono::duration<double, std::milli>(clock::now() - t0).count());
     } catch (const NumericalError& e) {
       const double wall = std::chrono::duration<double>(clock::now() - t_start).count();
@@ -99,6 +136,36 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   }
   const double wall = std::chrono::duration<double>(clock::now() - t_start).count();
   rec->finish(wall);
+  if (replay) {
+    const auto& g = replay->guard();
+    std::printf("needle_sim: bag %s: %zu commands on %s, %ld followed, %lu rejected (", bag_run.bag.c_str(),
+                session.commands.size(), bag_run.pose_topic.c_str(), replay->accepted(),
+                static_cast<unsigned long>(g.rejected()));
+    bool first = true;
+    for (int r = 0; r < kGuardRules; ++r)
+      if (g.count(static_cast<GuardRule>(r)) > 0) {
+        std::printf("%s%s %lu", first ? "" : ", ", ruleName(static_cast<GuardRule>(r)),
+                    static_cast<unsigned long>(g.count(static_cast<GuardRule>(r))));
+        first = false;
+      }
+    std::printf("%s)\n", first ? "none" : "");
+    if (!session.force.t.empty() && !sim_t.empty()) {
+      std::ofstream f(out_dir + "/measured_force.csv");
+      f << "t,measured_axial_force,simulated_axial_force\n";
+      f.precision(10);
+      double se = 0;
+      long m = 0;
+      for (size_t i = 0; i < session.force.t.size(); ++i) {
+        if (session.force.t[i] > sim_t.back()) break;
+        const double fs = interpolate(sim_t, sim_force, session.force.t[i]);
+        f << session.force.t[i] << ',' << session.force.force[i] << ',' << fs << '\n';
+        se += (fs - session.force.force[i]) * (fs - session.force.force[i]);
+        ++m;
+      }
+      std::printf("needle_sim: measured force on %s: %ld samples, rms difference to the simulated %.4e N (%s/measured_force.csv)\n",
+                  bag_run.wrench_topic.c_str(), m, m ? std::sqrt(se / m) : 0.0, out_dir.c_str());
+    }
+  }
   const auto p = percentiles(rec->stepTimes());
   std::printf("needle_sim: %ld steps in %.3f s (step median %.3f ms, p95 %.3f ms, max %.3f ms)\n", n, wall,
               p.median, p.p95, p.max);
@@ -179,6 +246,11 @@ int main(int argc, char** argv) {
                 "targets.<name>.error_estimate and error_bound");
   run->add_option("--target-error-every", rec_opts.target_error_every, "... every N steps (default 1)")
       ->check(CLI::PositiveNumber);
+  BagRun bag_run;
+  run->add_option("--bag", bag_run.bag, "drive the needle from the commanded base poses recorded in this bag (replaces the scene's motion and duration)");
+  run->add_option("--pose-topic", bag_run.pose_topic, "... on this geometry_msgs/PoseStamped topic (e.g. needle_sim/needle/command_pose)");
+  run->add_option("--wrench-topic", bag_run.wrench_topic, "... and compare with the measured geometry_msgs/WrenchStamped on this topic: DIR/measured_force.csv");
+  run->add_option("--needle", bag_run.needle, "... for this needle (default: the first)");
   run->add_option("--vtu-every", rec_opts.vtu_every,
                   "a ParaView series every N steps: DIR/vtu/, DIR/tissue.pvd, DIR/needles.pvd (0: none)")
       ->check(CLI::NonNegativeNumber);
@@ -228,10 +300,34 @@ int main(int argc, char** argv) {
   soak->add_option("--speed", soak_opts.speed, "insertion and withdrawal speed [m/s]")->capture_default_str();
   soak->add_option("--hold", soak_opts.hold, "hold at depth and at the start [s]")->capture_default_str();
   soak->add_option("--max-growth-mb", soak_opts.max_growth_mb,
-                   "exit 1 if RSS grows more than this from the second window to the last full one (0: report only)")
+                   "exit 1 if the heap in use grows more than this from the second window to the last full one (0: report only)")
       ->capture_default_str();
   soak->add_option("--csv", soak_opts.csv, "per-window rows");
   soak->add_option("--json", soak_opts.json_out, "summary as JSON");
+
+  CalibrateOptions cal;
+  auto* calibrate = app.add_subcommand("calibrate", "fit scene keys so that the simulated holder force matches a recorded one");
+  calibrate->add_option("scene", cal.scene, "scene file (YAML); its needle motion is the recorded robot motion")->required();
+  calibrate->add_option("--data", cal.data,
+                        "recorded force: CSV with columns t [s], axial_force [N, + pushes in], or a bag (with the topics)")
+      ->required();
+  calibrate->add_option("--pose-topic", cal.pose_topic, "bag: the commanded base poses (geometry_msgs/PoseStamped): the motion");
+  calibrate->add_option("--wrench-topic", cal.wrench_topic, "bag: the measured wrench (geometry_msgs/WrenchStamped, <needle>_base frame)");
+  calibrate->add_option("--fit", cal.fit, "scene keys to fit, comma-separated (e.g. interaction.cutting_force,interaction.grip_pressure)")
+      ->required();
+  calibrate->add_option("--start", cal.starts, "start value of a fitted key: key=value (default: the scene's)");
+  calibrate->add_option("--bounds", cal.bounds, "bounds of a fitted key: key=lower:upper (default: from the scene's checks)");
+  calibrate->add_option("--set", cal.sets, "override a fixed scene value (repeatable)");
+  calibrate->add_option("--needle", cal.needle, "needle whose holder force is fitted (default: the first)");
+  calibrate->add_option("--max-evaluations", cal.max_evaluations, "simulations the optimiser may run")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 100000));
+  calibrate->add_option("--xtol-rel", cal.xtol_rel, "stop when the parameters change by less than this, relative")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  calibrate->add_option("--out,-o", cal.out, "output directory: calibration.json, fit.csv, fit.png")->required();
+  calibrate->add_flag("!--no-plot", cal.plot, "do not write fit.png");
+  calibrate->add_flag("--quiet,-q", cal.quiet, "no progress on stderr");
 
   try {
     auto args = withoutRosArgs(argc, argv);
@@ -241,16 +337,18 @@ int main(int argc, char** argv) {
     bench_opts.scene = resolveScene(bench_opts.scene);
     pred.scene = resolveScene(pred.scene);
     soak_opts.scene = resolveScene(soak_opts.scene);
+    if (*calibrate) cal.scene = resolveScene(cal.scene);
   } catch (const CLI::ParseError& e) {
     const int code = app.exit(e);
     return code == 0 ? 0 : kExitInput;
   }
   try {
-    if (*run) return runCommand(scene_path, out_dir, sets, quiet, rec_opts);
+    if (*run) return runCommand(scene_path, out_dir, sets, quiet, rec_opts, bag_run);
     if (*check) return checkCommand(scene_path, sets);
     if (*bench) return benchCommand(bench_opts);
     if (*predict) return predictCommand(pred);
     if (*soak) return soakCommand(soak_opts);
+    if (*calibrate) return calibrateCommand(cal);
   } catch (const InputError& e) {
     std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
     return kExitInput;

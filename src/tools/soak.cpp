@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <malloc.h>
 #include <nlohmann/json.hpp>
 #include <sys/resource.h>
 #include <unistd.h>
@@ -23,6 +24,14 @@ double rssMb() {
   long pages = 0, resident = 0;
   f >> pages >> resident;
   return resident * static_cast<double>(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
+}
+// Bytes the program holds on the heap now [MB] (glibc: arena blocks in use plus mmap'd
+// blocks). This, not RSS, tells a leak: RSS also counts freed pages glibc keeps for reuse,
+// and on the adaptive phantom it swings by 2-4 MB between cycles with the phase at which
+// the arena was last trimmed.
+double heapMb() {
+  const struct mallinfo2 m = mallinfo2();
+  return static_cast<double>(m.uordblks + m.hblkhd) / (1024.0 * 1024.0);
 }
 double peakRssMb() {
   rusage u{};
@@ -55,23 +64,23 @@ int soakCommand(const SoakOptions& o) {
 
   std::printf("needle_sim soak: scene '%s', %ld steps of %g s, cycles of %.2f s (%.1f mm at %.1f mm/s, holds %.2f s)\n",
               scene.name.c_str(), o.steps, scene.dt, cycle, o.depth * 1e3, o.speed * 1e3, o.hold);
-  std::printf("| steps | sim time s | DOFs | step median ms | step p95 ms | step max ms | RSS MB | energy J | state |\n"
-              "|---|---|---|---|---|---|---|---|---|\n");
+  std::printf("| steps | sim time s | DOFs | step median ms | step p95 ms | step max ms | heap MB | RSS MB | energy J | state |\n"
+              "|---|---|---|---|---|---|---|---|---|---|\n");
   std::ofstream csv;
   if (!o.csv.empty()) {
     csv.open(o.csv);
     if (!csv) throw std::runtime_error("cannot write " + o.csv);
-    csv << "steps,time,dofs,step_median_ms,step_p95_ms,step_max_ms,rss_mb,kinetic_j,elastic_j\n";
+    csv << "steps,time,dofs,step_median_ms,step_p95_ms,step_max_ms,heap_mb,rss_mb,kinetic_j,elastic_j\n";
   }
   nlohmann::json windows = nlohmann::json::array();
   std::vector<double> ms;
   ms.reserve(window);
-  // RSS at the end of each full window (one cycle by default): the first cycle warms caches
+  // Heap in use at the end of each full window (one cycle by default): the first cycle warms caches
   // up (cached compliance columns, the refinement forest's nodes), so growth is measured
   // from the end of the second window to the end of the last full one, at the same phase.
-  std::vector<double> rss_windows;
-  double rss_last = 0, max_energy = 0;
-  const double rss_start = rssMb();
+  std::vector<double> heap_windows;
+  double rss_last = 0, heap_last = 0, max_energy = 0;
+  const double rss_start = rssMb(), heap_start = heapMb();
   using clock = std::chrono::steady_clock;
   const auto t_start = clock::now();
   for (long k = 1; k <= o.steps; ++k) {
@@ -90,41 +99,44 @@ int soakCommand(const SoakOptions& o) {
     ms.push_back(std::chrono::duration<double, std::milli>(clock::now() - t0).count());
     if (k % window == 0 || k == o.steps) {
       const auto p = percentiles(ms);
-      const double rss = rssMb(), ek = sim.kineticEnergy(), ee = sim.elasticEnergy();
+      const double rss = rssMb(), heap = heapMb(), ek = sim.kineticEnergy(), ee = sim.elasticEnergy();
       if (!std::isfinite(ek) || !std::isfinite(ee)) {
         std::fprintf(stderr, "needle_sim: non-finite energy at step %ld\n", k);
         return 3;
       }
       max_energy = std::max(max_energy, ek + ee);
-      if (k % window == 0) rss_windows.push_back(rss);
+      if (k % window == 0) heap_windows.push_back(heap);
       rss_last = rss;
+      heap_last = heap;
       const char* state = sim.interaction() ? toString(sim.interaction()->state(0)) : "-";
-      std::printf("| %ld | %.3f | %d | %.3f | %.3f | %.2f | %.1f | %.3e | %s |\n", k, sim.time(), sim.numDofs(), p.median,
-                  p.p95, p.max, rss, ek + ee, state);
+      std::printf("| %ld | %.3f | %d | %.3f | %.3f | %.2f | %.2f | %.1f | %.3e | %s |\n", k, sim.time(), sim.numDofs(),
+                  p.median, p.p95, p.max, heap, rss, ek + ee, state);
       std::fflush(stdout);
       if (csv.is_open())
         csv << k << ',' << sim.time() << ',' << sim.numDofs() << ',' << p.median << ',' << p.p95 << ',' << p.max << ','
-            << rss << ',' << ek << ',' << ee << '\n';
+            << heap << ',' << rss << ',' << ek << ',' << ee << '\n';
       windows.push_back({{"steps", k}, {"dofs", sim.numDofs()}, {"step_ms_median", p.median}, {"step_ms_p95", p.p95},
-                         {"step_ms_max", p.max}, {"rss_mb", rss}, {"energy_j", ek + ee}});
+                         {"step_ms_max", p.max}, {"heap_mb", heap}, {"rss_mb", rss}, {"energy_j", ek + ee}});
       ms.clear();
     }
   }
   const double wall = std::chrono::duration<double>(clock::now() - t_start).count();
-  const double rss_first = rss_windows.empty() ? rss_last : rss_windows.front();
-  const double rss_base = rss_windows.size() > 1 ? rss_windows[1] : rss_first;
-  const double rss_end = rss_windows.empty() ? rss_last : rss_windows.back();
-  const double growth = rss_end - rss_base;
-  std::printf("needle_sim soak: %ld steps in %.1f s, no NaN; RSS %.1f MB before the first step, %.1f / %.1f MB after "
-              "the first / second window, %.1f MB after the last full window (growth since the second %+.2f MB), "
-              "%.1f MB at the end, peak %.1f MB\n",
-              o.steps, wall, rss_start, rss_first, rss_base, rss_end, growth, rss_last, peakRssMb());
+  const double heap_first = heap_windows.empty() ? heap_last : heap_windows.front();
+  const double heap_base = heap_windows.size() > 1 ? heap_windows[1] : heap_first;
+  const double heap_end = heap_windows.empty() ? heap_last : heap_windows.back();
+  const double growth = heap_end - heap_base;
+  std::printf("needle_sim soak: %ld steps in %.1f s, no NaN; heap in use %.2f MB before the first step, %.2f / %.2f MB "
+              "after the first / second window, %.2f MB after the last full window (growth since the second %+.3f MB), "
+              "%.2f MB at the end; RSS %.1f MB before, %.1f MB at the end, peak %.1f MB\n",
+              o.steps, wall, heap_start, heap_first, heap_base, heap_end, growth, heap_last, rss_start, rss_last,
+              peakRssMb());
   if (!o.json_out.empty()) {
     std::ofstream f(o.json_out);
     if (!f) throw std::runtime_error("cannot write " + o.json_out);
-    f << nlohmann::json{{"scene", scene.name}, {"steps", o.steps}, {"wall_s", wall}, {"rss_start_mb", rss_start},
-                        {"rss_first_window_mb", rss_first}, {"rss_second_window_mb", rss_base},
-                        {"rss_last_full_window_mb", rss_end}, {"rss_growth_mb", growth}, {"rss_end_mb", rss_last}, {"rss_peak_mb", peakRssMb()},
+    f << nlohmann::json{{"scene", scene.name}, {"steps", o.steps}, {"wall_s", wall}, {"heap_start_mb", heap_start},
+                        {"heap_first_window_mb", heap_first}, {"heap_second_window_mb", heap_base},
+                        {"heap_last_full_window_mb", heap_end}, {"heap_growth_mb", growth}, {"heap_end_mb", heap_last},
+                        {"rss_start_mb", rss_start}, {"rss_end_mb", rss_last}, {"rss_peak_mb", peakRssMb()},
                         {"max_energy_j", max_energy}, {"windows", windows}}
              .dump(2)
       << '\n';

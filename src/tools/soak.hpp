@@ -14,7 +14,7 @@ struct SoakOptions {
   double depth = 0.02;       // insertion depth of a cycle beyond the start pose [m]
   double speed = 0.01;       // [m/s]
   double hold = 0.25;        // hold at depth and at the start [s]
-  double max_growth_mb = 0;  // exit 1 if RSS grows more than this from the 2nd window to the last full one (0: off)
+  double max_growth_mb = 0;  // exit 1 if the heap in use grows more than this from the 2nd window to the last full one (0: off)
   std::string csv;           // per-window rows
   std::string json_out;
 };

@@ -7,6 +7,8 @@
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <map>
+#include <set>
 #include <sstream>
 
 using nlohmann::json;
@@ -245,4 +247,110 @@ TEST(Cli, AdaptiveRunOutputs) {
       "lv = [int(v) for v in a['level']]; assert max(lv) == 2 and lv.count(2) == s['elements_per_level'][2]\" '" +
       out.string() + "'";
   EXPECT_EQ(std::system(check.c_str()), 0);
+}
+
+// calibrate's bad inputs: exit status 2 naming the problem, before any fitting.
+TEST(Cli, CalibrateRejectsBadInputsWithStatus2) {
+  const fs::path d = freshDir("calibrate");
+  fs::create_directories(d);
+  auto file = [&](const std::string& name, const std::string& text) {
+    std::ofstream(d / name) << text;
+    return (d / name).string();
+  };
+  const std::string good = file("good.csv", "t,axial_force\n0,0\n0.5,0.01\n1.0,0.02\n");
+  const std::string scene = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml --set time.duration=1.0";
+  const std::string out = " --out '" + (d / "out").string() + "' --no-plot --quiet";
+  struct Case {
+    std::string args, expect;
+  };
+  const std::vector<Case> cases = {
+      {"--data '" + file("nocol.csv", "t,force\n0,1\n1,2\n") + "' --fit interaction.cutting_force", "axial_force"},
+      {"--data '" + file("back.csv", "t,axial_force\n0,1\n1,2\n0.5,3\n") + "' --fit interaction.cutting_force", "increase"},
+      {"--data '" + file("nan.csv", "t,axial_force\n0,1\n1,nan\n") + "' --fit interaction.cutting_force", "finite"},
+      {"--data '" + good + "' --fit solver.linear.method", "not a number"},
+      {"--data '" + good + "' --fit interaction.no_such_key --start interaction.no_such_key=1", "no_such_key"},
+      {"--data '" + good + "' --fit needle.elements", "real-valued"},
+      {"--data '" + good + "' --fit interaction.cutting_force --start interaction.friction=1", "not among the --fit"},
+      {"--data '" + good + "' --fit interaction.cutting_force --bounds interaction.cutting_force=0.5:0.6", "outside"},
+      {"--data '" + file("rec.bag", "") + "' --fit interaction.cutting_force", "needs --pose-topic"},
+      {"--data '" + file("rec2.bag", "") + "' --fit interaction.cutting_force --pose-topic a --wrench-topic b", "cannot read the bag"},
+      {"--data '" + good + "' --fit interaction.cutting_force --pose-topic a", "topics are for a bag"},
+      {"--data '" + (d / "missing.csv").string() + "' --fit interaction.cutting_force", "cannot read"},
+  };
+  for (const auto& c : cases) {
+    SCOPED_TRACE(c.args);
+    const Result r = runTool("calibrate " + scene + " " + c.args + out);
+    EXPECT_EQ(r.status, 2) << r.err;
+    EXPECT_NE(r.err.find(c.expect), std::string::npos) << r.err;
+  }
+  EXPECT_FALSE(fs::exists(d / "out" / "calibration.json"));
+}
+
+namespace {
+// Columns of a CSV file by name.
+std::map<std::string, std::vector<std::string>> readColumns(const fs::path& file) {
+  std::ifstream in(file);
+  std::string line;
+  std::getline(in, line);
+  std::vector<std::string> names;
+  std::stringstream hs(line);
+  for (std::string c; std::getline(hs, c, ',');) names.push_back(c);
+  std::map<std::string, std::vector<std::string>> cols;
+  while (std::getline(in, line)) {
+    std::stringstream ls(line);
+    size_t i = 0;
+    for (std::string c; std::getline(ls, c, ',') && i < names.size(); ++i) cols[names[i]].push_back(c);
+  }
+  return cols;
+}
+}  // namespace
+
+// The bag record.launch recorded (the scripted phantom insertion) replayed headless drives
+// the needle through the command guard as the node does: the values the node's replay
+// rostest (check_replay.py) expects during the hold, within its 5 % tolerances, and the tip's
+// path; then the bad inputs of --bag.
+TEST(Cli, RunFromABagMatchesTheNodesReplay) {
+  const fs::path out = freshDir("bag");
+  const std::string bag = kSrc + "/test/data/bags/phantom_insertion_commands.bag";
+  const std::string scene = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml";
+  const Result r = runTool("run " + scene + " --quiet --out '" + out.string() + "' --bag '" + bag +
+                           "' --pose-topic needle/command_pose");
+  ASSERT_EQ(r.status, 0) << r.err;
+  auto cols = readColumns(out / "timeseries.csv");
+  ASSERT_FALSE(cols["t"].empty());
+  double p1 = 0, fx = 0, tip_max = -1;
+  int n = 0;
+  std::set<std::string> points;
+  for (size_t i = 0; i < cols["t"].size(); ++i) {
+    const double t = std::stod(cols["t"][i]);
+    tip_max = std::max(tip_max, std::stod(cols["needle_tip_x"][i]));
+    if (t < 2.35 || t > 2.45) continue;
+    p1 += std::stod(cols["p1_ux"][i]);
+    fx += std::stod(cols["needle_base_fx"][i]);
+    points.insert(cols["constraint_points"][i]);
+    ++n;
+  }
+  ASSERT_GT(n, 50);
+  EXPECT_NEAR(p1 / n, 9.147e-8, 0.05 * 9.147e-8);
+  EXPECT_NEAR(fx / n, 0.01950, 0.05 * 0.01950);
+  EXPECT_EQ(points, std::set<std::string>{"20"});
+  EXPECT_NEAR(tip_max, 0.019996, 5e-5);
+  EXPECT_EQ(cols["needle_state"].back(), "out");
+  std::ifstream in(out / "summary.json");
+  EXPECT_EQ(json::parse(in)["status"], "ok");
+
+  struct Case {
+    std::string args, expect;
+  };
+  for (const Case& c : std::vector<Case>{
+           {"--bag '" + bag + "' --pose-topic needle/no_such_topic", "no message"},
+           {"--bag '" + bag + "'", "--pose-topic"},
+           {"--bag '" + bag + "' --pose-topic needle/command_pose --wrench-topic needle/command_pose", "not geometry_msgs/WrenchStamped"},
+           {"--bag '" + (out / "missing.bag").string() + "' --pose-topic needle/command_pose", "cannot read the bag"},
+           {"--bag '" + bag + "' --pose-topic needle/command_pose --needle nobody", "no needle named"}}) {
+    SCOPED_TRACE(c.args);
+    const Result b = runTool("run " + scene + " --quiet --out '" + freshDir("badbag").string() + "' " + c.args);
+    EXPECT_EQ(b.status, 2) << b.err;
+    EXPECT_NE(b.err.find(c.expect), std::string::npos) << b.err;
+  }
 }

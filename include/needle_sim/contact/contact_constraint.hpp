@@ -7,6 +7,7 @@
 // Each law is a small subclass: the velocity each row aims at over the step (target) and
 // the projection of the multipliers onto its admissible set (project), which the projected
 // Gauss-Seidel solver applies after updating a row.
+#include <limits>
 #include <memory>
 
 #include "needle_sim/core/types.hpp"
@@ -26,6 +27,13 @@ class ContactConstraint {
   virtual Vec3 target(double h) const { return -gap / h; }
   // Projects lambda onto the law's admissible set after row `row` was updated.
   virtual void project(Vec3& lambda, int row) const = 0;
+  // Tip and shaft: the interval row 0 (axial) must lie in, given the lateral forces
+  // lambda[1..2] (friction, cutting); the block solver freezes it per outer iteration.
+  virtual void axialBounds(const Vec3& lambda, double& lo, double& hi) const {
+    (void)lambda;
+    lo = -std::numeric_limits<double>::infinity();
+    hi = std::numeric_limits<double>::infinity();
+  }
 
   EmbeddedPoint tissue;     // tissue material point
   int needle = 0;           // index of the needle

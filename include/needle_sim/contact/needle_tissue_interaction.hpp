@@ -93,6 +93,7 @@ class NeedleTissueInteraction {
   // Appends to `out` (not to constraints_, which the caller may be iterating).
   void layShaftPoints(int n, const EmbeddedPoint& upto, std::vector<std::unique_ptr<ContactConstraint>>& out);
   void updateGeometry();
+  double grip(int n) const;  // shaft points' grip force on needle n [N]
   void bindTissue(TissueBody& tissue, const EmbeddedSurface* organ);
 
   InteractionSettings settings_;

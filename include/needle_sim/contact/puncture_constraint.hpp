@@ -27,6 +27,7 @@ class PunctureConstraint : public ContactConstraint {
     }
   }
   double normalForce() const { return lambda[0]; }
+  double friction() const { return friction_; }
 
  private:
   double friction_;

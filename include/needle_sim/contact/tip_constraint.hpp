@@ -18,9 +18,14 @@ class TipConstraint : public ContactConstraint {
   ConstraintKind kind() const override { return ConstraintKind::Tip; }
   // Axial force on the needle: negative resists advance (friction + cutting), positive
   // resists retraction (friction only).
+  void axialBounds(const Vec3& l, double& lo, double& hi) const override {
+    hi = friction_ * std::hypot(l[1], l[2]);
+    lo = -(hi + cutting_);
+  }
   void project(Vec3& l, int) const override {
-    const double f = friction_ * std::hypot(l[1], l[2]);
-    l[0] = std::clamp(l[0], -(f + cutting_), f);
+    double lo, hi;
+    axialBounds(l, lo, hi);
+    l[0] = std::clamp(l[0], lo, hi);
   }
   // True when the axial force sits on its advancing bound: the tip is cutting.
   bool cutting() const {

@@ -128,6 +128,10 @@ class SimulatorRos {
   ros::WallTime last_display_;
   std::atomic<double> sim_time_now_{0.0};  // for commands in ~as_fast_as_possible mode
   uint64_t diag_rejected_ = 0, diag_limited_ = 0;  // at the last diagnostics
+  // Steps whose constraint solve missed its tolerance (lifetime; ~reset keeps it), and the
+  // count at the last diagnostics.
+  uint64_t unconverged_steps_ = 0, diag_unconverged_ = 0;
+  double constraint_residual_ = 0;  // of the last step
 
   std::mutex queue_mutex_;  // schedule_, origin_, commands_, plans_, holds_, stop_
   RealtimeSchedule schedule_;

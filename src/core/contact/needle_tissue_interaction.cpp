@@ -9,7 +9,7 @@
 #include <stdexcept>
 
 #include "needle_sim/contact/centre_line.hpp"
-#include "needle_sim/contact/projected_gauss_seidel.hpp"
+#include "needle_sim/contact/constraint_solve.hpp"
 #include "needle_sim/contact/puncture_constraint.hpp"
 #include "needle_sim/contact/shaft_constraint.hpp"
 #include "needle_sim/contact/sheath.hpp"
@@ -83,6 +83,11 @@ void NeedleTissueInteraction::rebind(TissueBody& tissue, const EmbeddedSurface* 
   }
 }
 
+double NeedleTissueInteraction::grip(int n) const {
+  // The normal force of the radial pressure over one shaft point's share of the path.
+  return 2 * M_PI * needles_[n]->beam().section().outer_radius * settings_.grip_pressure * settings_.shaft_spacing;
+}
+
 int NeedleTissueInteraction::activePoints(int n) const {
   int k = 0;
   for (const auto& c : constraints_) k += c->needle == n;
@@ -144,7 +149,7 @@ void NeedleTissueInteraction::layShaftPoints(int n, const EmbeddedPoint& upto,
     if (len < sp) break;
     EmbeddedPoint ep;
     if (rest_locator_->locate(tr.next_shaft_rest, ep)) {
-      auto c = std::make_unique<ShaftConstraint>(settings_.friction);
+      auto c = std::make_unique<ShaftConstraint>(settings_.friction, grip(n));
       c->tissue = ep;
       c->needle = n;
       out.push_back(std::move(c));
@@ -171,6 +176,7 @@ void NeedleTissueInteraction::updateGeometry() {
         if (to < 0) continue;
         c->needle = to;
         c->s = sm;
+        static_cast<ShaftConstraint&>(*c).setGrip(grip(to));
         c->lambda.setZero();
         if (tracks_[to].state == InsertionState::Approaching || tracks_[to].state == InsertionState::Out)
           tracks_[to].state = InsertionState::Inserted;
@@ -249,7 +255,8 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
     const double eps = 1e-8 * W.diagonal().maxCoeff();
     W.diagonal().array() += eps;
   }
-  // 4. Projected Gauss-Seidel, warm-started from the last multipliers.
+  // 4. The constraint solve (block active set, or the paper's projected Gauss-Seidel),
+  //    warm-started from the last multipliers.
   std::vector<ContactConstraint*> cs;
   VecX lambda(m);
   for (int p = 0; p < np; ++p) {
@@ -258,8 +265,9 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
   }
   // Force scale for the convergence test: the interaction's strengths (or 1 mN).
   const double force_scale = std::max({settings_.puncture_force, settings_.cutting_force, 1e-3});
-  const PgsResult r =
-      projectedGaussSeidel(W, u_free, cs, h, settings_.tolerance, settings_.max_iterations, force_scale, lambda);
+  const auto solve = settings_.solver == ConstraintSolver::GaussSeidel ? projectedGaussSeidel : blockActiveSet;
+  const ConstraintSolveResult r =
+      solve(W, u_free, cs, h, settings_.tolerance, settings_.max_iterations, force_scale, lambda);
   st.iterations = r.iterations;
   st.residual = r.residual;
   st.converged = r.converged;

@@ -291,7 +291,7 @@ void readNeedles(const SceneReader& r, const YAML::Node& root, Scene& s) {
 
 void readInteraction(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "interaction";
-  r.checkKeys(n, p, {"puncture_force", "cutting_force", "friction", "shaft_spacing", "solver"});
+  r.checkKeys(n, p, {"puncture_force", "cutting_force", "friction", "shaft_spacing", "grip_pressure", "solver"});
   InteractionSettings is;
   auto nonNegative = [&](const char* key) {
     const std::string k = SceneReader::join(p, key);
@@ -303,8 +303,18 @@ void readInteraction(const SceneReader& r, const YAML::Node& n, Scene& s) {
   is.cutting_force = nonNegative("cutting_force");
   is.friction = nonNegative("friction");
   is.shaft_spacing = r.positive(n, p, "shaft_spacing");
+  if (auto v = r.child(n, p, "grip_pressure", false)) {
+    is.grip_pressure = r.number(v, p + ".grip_pressure");
+    if (!(is.grip_pressure >= 0)) r.fail(p + ".grip_pressure", "must be >= 0 [Pa], got " + SceneReader::fmt(is.grip_pressure));
+  }
   if (auto sv = r.child(n, p, "solver", false)) {
-    r.checkKeys(sv, p + ".solver", {"tolerance", "max_iterations"});
+    r.checkKeys(sv, p + ".solver", {"method", "tolerance", "max_iterations"});
+    if (auto m = r.child(sv, p + ".solver", "method", false)) {
+      const std::string v = r.string(m, p + ".solver.method");
+      if (v == "block") is.solver = ConstraintSolver::BlockActiveSet;
+      else if (v == "gauss_seidel") is.solver = ConstraintSolver::GaussSeidel;
+      else r.fail(p + ".solver.method", "must be 'block' or 'gauss_seidel', got '" + v + "'");
+    }
     if (sv["tolerance"]) is.tolerance = r.positive(sv, p + ".solver", "tolerance");
     if (auto it = r.child(sv, p + ".solver", "max_iterations", false)) {
       const long long v = r.integer(it, p + ".solver.max_iterations");

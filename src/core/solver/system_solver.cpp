@@ -107,7 +107,8 @@ LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m
                                                Eigen::MatrixXd& X, double tolerance, int max_iterations,
                                                bool& converged) {
   LinearSolveStats st;
-  if (!chol_.factored()) refactor(mass_free, c_m, c_k, st);
+  const bool own_factor = !chol_.factored();  // e.g. the first estimate on a new mesh, before any step
+  if (own_factor) refactor(mass_free, c_m, c_k, st);
   const auto t0 = steadyNow();
   auto A = [&](const VecX& v, VecX& out) { apply(mass_free, c_m, c_k, v, out); };
   auto M = [&](const VecX& r, VecX& z) { chol_.solve(r, z); };
@@ -122,6 +123,10 @@ LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m
     converged = converged && r.converged && x.allFinite();
   }
   st.solve_ms += msSince(t0);
+  // A factor made here is of this call's matrix (the dual's K), not of the step's A: the next
+  // step must refactor rather than take it as its preconditioner, and the compliance cache
+  // must not take its columns (they would be K^-1's, about h(h + beta) too small).
+  if (own_factor) stale_ = true;
   return st;
 }
 

@@ -1,0 +1,22 @@
+#pragma once
+// A recorded insertion's axial holder force against time (doc/calibration.md): what a
+// force/torque sensor on the needle holder measured, to compare the simulation with and to
+// calibrate its parameters from. CSV with a header naming the columns `t` [s] and
+// `axial_force` [N, positive when the holder pushes the needle in]; other columns are ignored.
+#include <string>
+#include <vector>
+
+namespace needle_sim {
+
+struct ForceRecord {
+  std::vector<double> t, force;
+};
+
+// Throws InputError(file, column, problem) for a file that cannot be read, a missing column,
+// a value that is not a finite number, times that do not increase strictly, fewer than 2 rows.
+ForceRecord readForceCsv(const std::string& path);
+
+// Linear interpolation of (t, y) at time x, clamped at the ends; t strictly increasing.
+double interpolate(const std::vector<double>& t, const std::vector<double>& y, double x);
+
+}  // namespace needle_sim

@@ -1,0 +1,370 @@
+#include "needle_sim/calibration/force_calibration.hpp"
+
+#include <nlopt.h>
+#include <yaml-cpp/yaml.h>
+
+#include <Eigen/Eigenvalues>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <future>
+
+#include "needle_sim/core/error.hpp"
+#include "needle_sim/core/types.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/scene/scene_overrides.hpp"
+#include "needle_sim/sim/simulation.hpp"
+
+namespace needle_sim {
+
+namespace {
+
+std::string num(double v) {
+  char b[40];
+  std::snprintf(b, sizeof b, "%.17g", v);
+  return b;
+}
+
+// The scene's value of a key path (maps by name, lists by index); undefined if absent.
+// (yaml-cpp: `n = child` would assign into the tree; reset() rebinds the handle.)
+YAML::Node lookup(const YAML::Node& root, const std::string& key) {
+  YAML::Node n;
+  n.reset(root);
+  size_t pos = 0;
+  while (pos <= key.size()) {
+    const size_t dot = std::min(key.find('.', pos), key.size());
+    const std::string part = key.substr(pos, dot - pos);
+    if (!n || !(n.IsMap() || n.IsSequence())) return YAML::Node(YAML::NodeType::Undefined);
+    if (n.IsSequence()) {
+      char* end = nullptr;
+      const long i = std::strtol(part.c_str(), &end, 10);
+      if (part.empty() || *end || i < 0 || i >= static_cast<long>(n.size())) return YAML::Node(YAML::NodeType::Undefined);
+      n.reset(n[static_cast<size_t>(i)]);
+    } else {
+      const YAML::Node child = n[part];
+      if (!child) return YAML::Node(YAML::NodeType::Undefined);
+      n.reset(child);
+    }
+    pos = dot + 1;
+  }
+  return n;
+}
+
+// The loader's verdict on a value of the key (empty: accepted).
+std::string rejects(const CalibrationSettings& s, const std::string& key, double v) {
+  std::vector<std::string> sets = s.sets;
+  sets.push_back(key + "=" + num(v));
+  try {
+    loadScene(s.scene, sets);  // the scene's own checks (the start run builds the bodies)
+  } catch (const InputError& e) {
+    return e.problem();
+  }
+  return "";
+}
+
+double scaleOf(const CalibrationParameter& p) { return std::abs(p.start) > 0 ? std::abs(p.start) : 1.0; }
+
+}  // namespace
+
+std::vector<std::string> parameterSets(const std::vector<CalibrationParameter>& p, const std::vector<double>& v) {
+  std::vector<std::string> out;
+  for (size_t i = 0; i < p.size(); ++i) out.push_back(p[i].key + "=" + num(v[i]));
+  return out;
+}
+
+std::vector<CalibrationParameter> resolveParameters(const CalibrationSettings& s) {
+  if (s.parameters.empty()) throw InputError("", "--fit", "no parameter to fit");
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(s.scene);
+  } catch (const YAML::Exception& e) {
+    throw InputError(s.scene, "", std::string("cannot read the scene: ") + e.what());
+  }
+  root = resolveExtends(root, s.scene);
+  for (const auto& o : s.sets) applyOverride(root, o, s.scene);
+  std::vector<CalibrationParameter> out;
+  for (CalibrationParameter p : s.parameters) {
+    for (const auto& q : out)
+      if (q.key == p.key) throw InputError(s.scene, p.key, "named twice in --fit");
+    if (!std::isfinite(p.start)) {
+      const YAML::Node n = lookup(root, p.key);
+      if (!n || n.IsNull()) {
+        // Absent from the file: a key the scene does not know, or an optional one.
+        const std::string why = rejects(s, p.key, 1.0);
+        if (!why.empty() && !rejects(s, p.key, 0.0).empty()) throw InputError(s.scene, p.key, "not a key this scene accepts: " + why);
+        throw InputError(s.scene, p.key, "the scene has no value for it: give its start with --start " + p.key + "=VALUE");
+      }
+      if (!n.IsScalar()) throw InputError(s.scene, p.key, "not a number (a list or a map): only real-valued keys can be fitted");
+      char* end = nullptr;
+      const std::string text = n.Scalar();
+      p.start = std::strtod(text.c_str(), &end);
+      if (end == text.c_str() || *end || !std::isfinite(p.start))
+        throw InputError(s.scene, p.key, "not a number ('" + text + "'): only real-valued keys can be fitted");
+    }
+    // Known to the scene and valid at the start; real-valued (a fraction is accepted).
+    if (const std::string why = rejects(s, p.key, p.start); !why.empty())
+      throw InputError(s.scene, p.key, "the start value " + num(p.start) + " is rejected: " + why);
+    const double sc = scaleOf(p);
+    if (const std::string why = rejects(s, p.key, p.start + 1e-3 * sc + 1e-9); !why.empty())
+      throw InputError(s.scene, p.key, "not a real-valued key (" + why + ")");
+    // Bounds from the scene's validity checks where not given: a key that takes negative
+    // values ranges 10 scales either side; one that does not starts at 0, or just above if 0
+    // is rejected; the upper bound is 10 scales above the start, or the largest accepted
+    // value below that (by bisection).
+    if (!std::isfinite(p.lower)) {
+      if (rejects(s, p.key, p.start - 10 * sc).empty()) p.lower = p.start - 10 * sc;
+      else if (p.start >= 0 && rejects(s, p.key, 0.0).empty()) p.lower = 0.0;
+      else p.lower = p.start >= 0 ? 1e-3 * sc : p.start;
+    }
+    if (!std::isfinite(p.upper)) {
+      double ok = p.start, bad = p.start + 10 * sc;
+      if (rejects(s, p.key, bad).empty()) ok = bad;
+      else
+        for (int k = 0; k < 30; ++k) {
+          const double mid = 0.5 * (ok + bad);
+          (rejects(s, p.key, mid).empty() ? ok : bad) = mid;
+        }
+      p.upper = ok;
+    }
+    if (!(p.lower < p.upper)) throw InputError(s.scene, p.key, "empty bounds [" + num(p.lower) + ", " + num(p.upper) + "]");
+    if (p.start < p.lower || p.start > p.upper)
+      throw InputError(s.scene, p.key, "the start " + num(p.start) + " is outside its bounds [" + num(p.lower) + ", " +
+                                           num(p.upper) + "]");
+    out.push_back(p);
+  }
+  return out;
+}
+
+SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<std::string>& sets, int needle,
+                                   double until, const std::vector<RecordedCommand>* commands) {
+  SimulatedForce r;
+  Scene sc = loadScene(scene, sets);
+  if (needle < 0 || needle >= static_cast<int>(sc.needles.size()))
+    throw InputError(scene, "needle", "the scene has no needle " + std::to_string(needle));
+  const bool replaying = commands && !commands->empty();
+  if (replaying) {
+    sc.needles[needle].motion.clear();
+    sc.duration = std::max(until, sc.dt);
+  }
+  try {
+    Simulation sim(sc);
+    std::unique_ptr<CommandReplay> replay;
+    if (replaying) replay = std::make_unique<CommandReplay>(sim, CommandLimits{}, *commands);
+    const BasePose p0 = sim.needle(needle).trajectory().pose(0);
+    const long steps = std::min(sc.numSteps(), static_cast<long>(std::ceil(until / sc.dt - 1e-9)) + 1);
+    for (long k = 0; k < steps; ++k) {
+      if (replay) replay->beforeStep(sim);
+      sim.step();
+      const NeedleBody& n = sim.needle(needle);
+      const BasePose b = n.trajectory().pose(sim.time());
+      r.t.push_back(sim.time());
+      r.force.push_back(n.baseForce().dot(b.direction));
+      r.advance.push_back((b.position - p0.position).dot(p0.direction));
+      if (!std::isfinite(r.force.back())) throw NumericalError(k, "non-finite holder force");
+    }
+  } catch (const NumericalError& e) {
+    r.failed = true;
+    r.failure = e.what();
+  }
+  return r;
+}
+
+namespace {
+
+struct Problem {
+  const CalibrationSettings* s;
+  const ForceRecord* data;
+  std::vector<CalibrationParameter> p;
+  std::vector<double> scale;
+  double until = 0, penalty = 0;
+  int samples = 0;  // measured samples inside the simulated time
+  int evaluations = 0, failed = 0;
+  double best = std::numeric_limits<double>::infinity();
+  const std::function<void(int, double, const std::vector<double>&)>* progress;
+
+  std::vector<double> values(const double* x) const {
+    std::vector<double> v(p.size());
+    for (size_t i = 0; i < p.size(); ++i) v[i] = std::clamp(x[i] * scale[i], p[i].lower, p[i].upper);
+    return v;
+  }
+  SimulatedForce run(const std::vector<double>& v) const {
+    std::vector<std::string> sets = s->sets;
+    for (const auto& o : parameterSets(p, v)) sets.push_back(o);
+    try {
+      return simulateHolderForce(s->scene, sets, s->needle, until, &s->commands);
+    } catch (const InputError& e) {  // a combination the scene rejects: a penalised point
+      SimulatedForce f;
+      f.failed = true;
+      f.failure = e.what();
+      return f;
+    }
+  }
+  // Residuals at the measured samples inside the simulated time.
+  VecX residuals(const SimulatedForce& f) const {
+    std::vector<double> r;
+    for (size_t i = 0; i < data->t.size(); ++i)
+      if (data->t[i] <= until + 1e-12) r.push_back(interpolate(f.t, f.force, data->t[i]) - data->force[i]);
+    return Eigen::Map<const VecX>(r.data(), static_cast<Eigen::Index>(r.size()));
+  }
+};
+
+double objective(unsigned n, const double* x, double* grad, void* data) {
+  (void)n;
+  (void)grad;  // BOBYQA is derivative-free
+  Problem& pr = *static_cast<Problem*>(data);
+  const std::vector<double> v = pr.values(x);
+  const SimulatedForce f = pr.run(v);
+  ++pr.evaluations;
+  double cost;
+  if (f.failed) {
+    ++pr.failed;
+    cost = pr.penalty;
+  } else {
+    cost = pr.residuals(f).squaredNorm();
+  }
+  pr.best = std::min(pr.best, cost);
+  if (*pr.progress) (*pr.progress)(pr.evaluations, std::sqrt(cost / std::max(pr.samples, 1)), v);
+  return cost;
+}
+
+const char* stopReason(nlopt_result r) {
+  switch (r) {
+    case NLOPT_SUCCESS: return "success";
+    case NLOPT_STOPVAL_REACHED: return "stopval reached";
+    case NLOPT_FTOL_REACHED: return "relative change of the cost below its tolerance";
+    case NLOPT_XTOL_REACHED: return "relative change of the parameters below xtol_rel";
+    case NLOPT_MAXEVAL_REACHED: return "evaluation limit reached";
+    case NLOPT_MAXTIME_REACHED: return "time limit reached";
+    case NLOPT_ROUNDOFF_LIMITED: return "round-off limited";
+    case NLOPT_FORCED_STOP: return "forced stop";
+    default: return "failure";
+  }
+}
+
+}  // namespace
+
+CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& data,
+                            const std::function<void(int, double, const std::vector<double>&)>& progress) {
+  const auto t0 = std::chrono::steady_clock::now();
+  CalibrationResult r;
+  Problem pr;
+  pr.s = &s;
+  pr.data = &data;
+  pr.progress = &progress;
+  pr.p = resolveParameters(s);
+  r.parameters = pr.p;
+  const Scene sc = loadScene(s.scene, s.sets);
+  pr.until = s.commands.empty() ? std::min(sc.duration, data.t.back()) : data.t.back();
+  const size_t n = pr.p.size();
+  std::vector<double> x(n), lb(n), ub(n), step(n);
+  for (size_t i = 0; i < n; ++i) {
+    pr.scale.push_back(scaleOf(pr.p[i]));
+    x[i] = pr.p[i].start / pr.scale[i];
+    lb[i] = pr.p[i].lower / pr.scale[i];
+    ub[i] = pr.p[i].upper / pr.scale[i];
+    step[i] = std::min(0.25, 0.4 * (ub[i] - lb[i]));
+  }
+  std::vector<double> start(n);
+  for (size_t i = 0; i < n; ++i) start[i] = pr.p[i].start;
+  r.start_run = pr.run(start);
+  if (r.start_run.failed) throw NumericalError(0, "the simulation fails at the start values: " + r.start_run.failure);
+  const VecX r0 = pr.residuals(r.start_run);
+  r.residuals = pr.samples = static_cast<int>(r0.size());
+  if (r.residuals < static_cast<int>(n) + 1)
+    throw InputError("", "--data", std::to_string(r.residuals) + " measured samples fall inside the scene's " +
+                                       std::to_string(sc.duration) + " s: at least " + std::to_string(n + 1) +
+                                       " are needed for " + std::to_string(n) + " parameters");
+  r.rms_start = std::sqrt(r0.squaredNorm() / r.residuals);
+  // A failed evaluation costs more than any force the record could be off by.
+  pr.penalty = 100 * std::max(r0.squaredNorm(), Eigen::Map<const VecX>(data.force.data(), data.force.size()).squaredNorm());
+
+  nlopt_opt opt = nlopt_create(NLOPT_LN_BOBYQA, static_cast<unsigned>(n));
+  nlopt_set_lower_bounds(opt, lb.data());
+  nlopt_set_upper_bounds(opt, ub.data());
+  nlopt_set_initial_step(opt, step.data());
+  nlopt_set_xtol_rel(opt, s.xtol_rel);
+  nlopt_set_maxeval(opt, s.max_evaluations);
+  nlopt_set_min_objective(opt, objective, &pr);
+  double cost = 0;
+  const nlopt_result res = nlopt_optimize(opt, x.data(), &cost);
+  nlopt_destroy(opt);
+  r.stop_reason = stopReason(res);
+  if (res < 0 && res != NLOPT_ROUNDOFF_LIMITED && res != NLOPT_FORCED_STOP)
+    throw NumericalError(0, std::string("the optimiser failed: ") + r.stop_reason);
+  r.values = pr.values(x.data());
+  r.evaluations = pr.evaluations;
+  r.failed_evaluations = pr.failed;
+  r.fitted_run = pr.run(r.values);
+  const VecX rf = pr.residuals(r.fitted_run);
+  r.rms = std::sqrt(rf.squaredNorm() / r.residuals);
+
+  // Central-difference Jacobian of the residuals at the fit (one-sided at a bound), the runs
+  // in parallel; steps of 1 % of each parameter's scale.
+  Eigen::MatrixXd J(r.residuals, static_cast<Eigen::Index>(n));
+  std::vector<std::function<void()>> jobs;
+  std::vector<SimulatedForce> plus(n), minus(n);
+  std::vector<double> hp(n), hm(n);
+  for (size_t i = 0; i < n; ++i) {
+    const double h = 1e-2 * pr.scale[i];
+    hp[i] = std::min(h, pr.p[i].upper - r.values[i]);
+    hm[i] = std::min(h, r.values[i] - pr.p[i].lower);
+    jobs.emplace_back([&, i] {
+      std::vector<double> v = r.values;
+      v[i] += hp[i];
+      plus[i] = pr.run(v);
+    });
+    jobs.emplace_back([&, i] {
+      std::vector<double> v = r.values;
+      v[i] -= hm[i];
+      minus[i] = pr.run(v);
+    });
+  }
+  const size_t threads = static_cast<size_t>(std::max(1, s.threads));
+  for (size_t k = 0; k < jobs.size(); k += threads) {
+    std::vector<std::future<void>> f;
+    for (size_t j = k; j < std::min(jobs.size(), k + threads); ++j) f.push_back(std::async(std::launch::async, jobs[j]));
+    for (auto& x : f) x.get();
+  }
+  r.jacobian_evaluations = static_cast<int>(jobs.size());
+  bool jac_ok = true;
+  for (size_t i = 0; i < n; ++i) {
+    if (plus[i].failed || minus[i].failed || hp[i] + hm[i] <= 0) {
+      jac_ok = false;
+      J.col(static_cast<Eigen::Index>(i)).setZero();
+      continue;
+    }
+    J.col(static_cast<Eigen::Index>(i)) = (pr.residuals(plus[i]) - pr.residuals(minus[i])) / (hp[i] + hm[i]);
+  }
+  const double dof = std::max(1, r.residuals - static_cast<int>(n));
+  const double s2 = rf.squaredNorm() / dof;
+  // (J^T J)^-1 in the parameters' scales, by eigen-decomposition: directions with an
+  // eigenvalue below 1e-10 of the largest are not determined by the data.
+  Eigen::MatrixXd D = Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(n));
+  for (size_t i = 0; i < n; ++i) D(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(i)) = pr.scale[i];
+  const Eigen::MatrixXd Js = J * D;
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> es(Js.transpose() * Js);
+  const VecX ev = es.eigenvalues();
+  const double emax = ev.maxCoeff();
+  Eigen::MatrixXd inv = Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(n));
+  std::vector<bool> undetermined(n, !jac_ok || !(emax > 0));
+  for (Eigen::Index k = 0; k < ev.size(); ++k) {
+    const VecX q = es.eigenvectors().col(k);
+    if (ev[k] > 1e-10 * emax) {
+      inv += q * q.transpose() / ev[k];
+    } else {
+      for (size_t i = 0; i < n; ++i)
+        if (std::abs(q[static_cast<Eigen::Index>(i)]) > 1e-3) undetermined[i] = true;
+    }
+  }
+  for (size_t i = 0; i < n; ++i) {
+    const double se = undetermined[i] ? std::numeric_limits<double>::infinity()
+                                      : pr.scale[i] * std::sqrt(s2 * inv(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(i)));
+    r.std_errors.push_back(se);
+    r.identifiable.push_back(std::isfinite(se) && se < std::abs(r.values[i]));
+  }
+  r.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return r;
+}
+
+}  // namespace needle_sim

@@ -1,0 +1,24 @@
+#pragma once
+// A recorded session read from a rosbag (doc/cli.md, "run --bag"): the commanded base poses
+// of one needle (geometry_msgs/PoseStamped, e.g. record.launch's <node>/<needle>/command_pose)
+// and optionally the measured wrench (geometry_msgs/WrenchStamped in the needle's base frame,
+// x along the needle). Times are seconds since the first message on either topic.
+#include <string>
+
+#include "needle_sim/calibration/force_record.hpp"
+#include "needle_sim/sim/command_replay.hpp"
+
+namespace needle_sim {
+
+struct BagSession {
+  std::vector<RecordedCommand> commands;
+  ForceRecord force;   // axial holder force [N, + pushes in] = -wrench.force.x; empty without a wrench topic
+  double end = 0;      // last message [s]
+};
+
+// Throws InputError naming the bag and the topic: unreadable bag, an empty topic, a topic of
+// another type, a wrench that is not in a *_base frame.
+BagSession readBagSession(const std::string& bag, const std::string& pose_topic, const std::string& wrench_topic,
+                          int needle, const std::string& tissue_frame = "tissue");
+
+}  // namespace needle_sim
