@@ -253,6 +253,9 @@ GripRun gripRun(double pressure, const std::string& young = "1.0e7") {
 // against depth grows by that, and the withdrawal needs a pull of about mu 2 pi r p times the
 // depth still inside. Without it (the paper's cone) friction follows the lateral forces alone.
 TEST(ConstraintSolve, GripPressureAddsItsFrictionPerMetre) {
+#ifdef NEEDLE_SIM_SANITIZED
+  GTEST_SKIP() << "a 4,600-step insertion, twice: test_interaction runs the same solver path under the sanitizers";
+#endif
   const double mu = 0.05, r = 0.001, p = 500;
   const GripRun g0 = gripRun(0), g = gripRun(p);
   const double expected = mu * 2 * M_PI * r * p;  // 0.157 N/m
@@ -272,6 +275,9 @@ TEST(ConstraintSolve, GripPressureAddsItsFrictionPerMetre) {
 // Soft tissue (E = 6 kPa, brain-like): the default block solver converges at every step of the
 // insertion where the projected Gauss-Seidel sweeps do not (the failure #21 reported).
 TEST(ConstraintSolve, SoftTissueInsertionConvergesAtEveryStep) {
+#ifdef NEEDLE_SIM_SANITIZED
+  GTEST_SKIP() << "a 4,600-step insertion: test_interaction runs the same solver path under the sanitizers";
+#endif
   const GripRun soft = gripRun(0, "6000");
   EXPECT_EQ(soft.unconverged, 0);
   EXPECT_LT(soft.max_bound_excess, 1e-12);
