@@ -46,6 +46,11 @@ struct ReducedContactProblem {
   VecX qF, z, target;
 };
 
+// Records iteration `it` whose largest multiplier change was max_delta in r (the residual:
+// relative to the largest multiplier or force_scale); true when it meets the tolerance.
+bool recordIteration(ConstraintSolveResult& r, int it, double max_delta, const VecX& lambda, double force_scale,
+                     double tolerance);
+
 // Each constraint's block projected onto its law with the final lateral forces (a friction
 // bound may have moved in a solver's last iteration).
 void projectOntoLaws(const std::vector<ContactConstraint*>& constraints, VecX& lambda);

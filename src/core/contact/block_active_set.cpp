@@ -174,13 +174,7 @@ ConstraintSolveResult blockActiveSet(const Eigen::MatrixXd& W, const VecX& u_fre
       lF.segment<3>(i0) = l;
     }
     rp.scatter(lF, lambda);
-    const double scale = std::max(lambda.lpNorm<Eigen::Infinity>(), force_scale);
-    r.iterations = it;
-    r.residual = scale > 0 ? (lambda - old).lpNorm<Eigen::Infinity>() / scale : 0;
-    if (r.residual <= tol) {
-      r.converged = true;
-      break;
-    }
+    if (recordIteration(r, it, (lambda - old).lpNorm<Eigen::Infinity>(), lambda, force_scale, tol)) break;
   }
   projectOntoLaws(c, lambda);
   return r;

@@ -38,13 +38,7 @@ ConstraintSolveResult projectedGaussSeidel(const Eigen::MatrixXd& W, const VecX&
     const VecX old = lambda;
     rp.scatter(lF, lambda);  // lateral forces for the next sweep's bounds
     max_delta = std::max(max_delta, (lambda - old).lpNorm<Eigen::Infinity>());
-    const double scale = std::max(lambda.lpNorm<Eigen::Infinity>(), force_scale);
-    r.iterations = it;
-    r.residual = scale > 0 ? max_delta / scale : 0;
-    if (r.residual <= tol) {
-      r.converged = true;
-      break;
-    }
+    if (recordIteration(r, it, max_delta, lambda, force_scale, tol)) break;
   }
   projectOntoLaws(c, lambda);
   return r;

@@ -1,3 +1,4 @@
+#include <algorithm>
 #include <Eigen/Cholesky>
 
 #include "needle_sim/contact/constraint_solve.hpp"
@@ -58,6 +59,15 @@ VecX ReducedContactProblem::gatherF(const VecX& lambda) const {
   VecX o(F.size());
   for (size_t i = 0; i < F.size(); ++i) o[static_cast<Eigen::Index>(i)] = lambda[F[i]];
   return o;
+}
+
+bool recordIteration(ConstraintSolveResult& r, int it, double max_delta, const VecX& lambda, double force_scale,
+                     double tolerance) {
+  const double scale = std::max(lambda.lpNorm<Eigen::Infinity>(), force_scale);
+  r.iterations = it;
+  r.residual = scale > 0 ? max_delta / scale : 0;
+  r.converged = r.residual <= tolerance;
+  return r.converged;
 }
 
 void projectOntoLaws(const std::vector<ContactConstraint*>& c, VecX& lambda) {
