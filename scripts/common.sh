@@ -64,4 +64,25 @@ build() {
   cmake --build "$BUILD" -j"$(nproc)" --target tests >&2
 }
 
+# The hardening build shared by sanitize.sh and fuzz.sh (issue #8): clang, which compiles this
+# code about 2.5 times faster than g++ under the sanitizers, ASan + UBSan on everything, the
+# libFuzzer targets beside the unit tests. A folder configured otherwise (an older g++ ASan
+# build) is made anew: a compiler cannot change in a CMake build folder.
+# Under ./build, which rosrun does not search: a sanitized tool beside the devel space's
+# would make `rosrun needle_sim needle_sim` ambiguous.
+SANITIZED_BUILD="${NEEDLE_SIM_ASAN_DIR:-$ROOT/build/asan}"
+configure_sanitized() {
+  PACKAGES+=(clang libclang-rt-14-dev)
+  install_missing
+  if [ -f "$SANITIZED_BUILD/CMakeCache.txt" ] && ! grep -q "^NEEDLE_SIM_FUZZ:BOOL=ON" "$SANITIZED_BUILD/CMakeCache.txt"; then
+    echo "needle_sim: $SANITIZED_BUILD was configured without clang and the fuzz targets: made anew" >&2
+    rm -rf "$SANITIZED_BUILD"
+  fi
+  if [ ! -f "$SANITIZED_BUILD/CMakeCache.txt" ]; then
+    CC=clang CXX=clang++ cmake -S "$ROOT" -B "$SANITIZED_BUILD" -DCMAKE_BUILD_TYPE=RelWithDebInfo \
+      -DNEEDLE_SIM_SANITIZE=ON -DNEEDLE_SIM_FUZZ=ON -DCATKIN_DEVEL_PREFIX="$SANITIZED_BUILD/devel" \
+      -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
+  fi
+}
+
 NEEDLE_SIM="$DEVEL/lib/needle_sim/needle_sim"

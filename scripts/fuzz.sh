@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # libFuzzer runs of the scene parser (with --set overrides) and of mesh loading, with
-# AddressSanitizer + UndefinedBehaviorSanitizer (clang), in ./build_fuzz (issue #8). Each
-# target runs for --seconds (default 60) from its corpus under test/data/fuzz/<target>;
-# new coverage goes to build_fuzz/corpus/<target>, crashes to build_fuzz/crashes/<target>
+# AddressSanitizer + UndefinedBehaviorSanitizer (clang), in ./build/asan, the build
+# scripts/sanitize.sh makes (issue #8). Each target runs for --seconds (default 60) from its
+# corpus under test/data/fuzz/<target>; new coverage goes to build/asan/corpus/<target>,
+# crashes to build/asan/crashes/<target>
 # (copy each into test/data/fuzz/<target>/ once fixed: CTest replays them).
 #   bash scripts/fuzz.sh                  # both targets, 60 s each
 #   bash scripts/fuzz.sh --seconds 600    # the long (nightly) mode
@@ -17,14 +18,8 @@ while [ $# -gt 0 ]; do
     *) echo "fuzz.sh: unknown argument $1" >&2; exit 2 ;;
   esac
 done
-PACKAGES+=(clang libclang-rt-14-dev)
-install_missing
-BUILD="${NEEDLE_SIM_FUZZ_DIR:-$ROOT/build_fuzz}"
-if [ ! -f "$BUILD/CMakeCache.txt" ]; then
-  CC=clang CXX=clang++ cmake -S "$ROOT" -B "$BUILD" -DCMAKE_BUILD_TYPE=RelWithDebInfo -DNEEDLE_SIM_FUZZ=ON \
-    -DCATKIN_DEVEL_PREFIX="$BUILD/devel" -DCATKIN_ENABLE_TESTING=OFF \
-    -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
-fi
+configure_sanitized
+BUILD="$SANITIZED_BUILD"
 cmake --build "$BUILD" -j"$(nproc)" --target fuzz_scene fuzz_mesh >&2
 export ASAN_OPTIONS="detect_leaks=1" UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1"
 export LSAN_OPTIONS="suppressions=$ROOT/test/fuzz/lsan.supp:print_suppressions=0"

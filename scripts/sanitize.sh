@@ -1,17 +1,13 @@
 #!/usr/bin/env bash
-# AddressSanitizer + UndefinedBehaviorSanitizer build of the package in ./build_asan, then the
-# unit tests (gtest; the rostests stay in the regular build) and the fuzz corpus replays
-# under it. Exits non-zero on any test failure or sanitizer report (issue #8).
+# AddressSanitizer + UndefinedBehaviorSanitizer build of the package in ./build/asan (clang,
+# shared with scripts/fuzz.sh), then the unit tests (gtest; the rostests stay in the regular
+# build) and the fuzz corpus replays under it. Exits non-zero on any test failure or
+# sanitizer report (issue #8).
 #   bash scripts/sanitize.sh                 # everything
 #   bash scripts/sanitize.sh -R test_scene   # extra arguments go to ctest
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-install_missing
-BUILD="${NEEDLE_SIM_ASAN_DIR:-$ROOT/build_asan}"
-if [ ! -f "$BUILD/CMakeCache.txt" ]; then
-  cmake -S "$ROOT" -B "$BUILD" -DCMAKE_BUILD_TYPE=RelWithDebInfo -DNEEDLE_SIM_SANITIZE=ON \
-    -DCATKIN_DEVEL_PREFIX="$BUILD/devel" \
-    -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
-fi
+configure_sanitized
+BUILD="$SANITIZED_BUILD"
 # The unit tests only (the rostest nodes, the stability sweep and the soak, slow under ASan,
 # stay in the regular build).
 UNIT=(test_fem test_solver test_verification test_scene test_beam test_interaction test_spr test_refinement
@@ -23,4 +19,6 @@ export ASAN_OPTIONS="detect_leaks=1:abort_on_error=0:strict_string_checks=1"
 export UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1"
 export LSAN_OPTIONS="suppressions=$ROOT/test/fuzz/lsan.supp:print_suppressions=0"
 export OPENBLAS_NUM_THREADS=1 OMP_THREAD_LIMIT=1
-ctest --output-on-failure -E "rostest|stability_sweep|soak|rviz_view|launch_sequence" "$@"
+# One test per core: the unit tests are single-threaded here and none is timed. (Cores from
+# getconf: nproc would honour the OMP_THREAD_LIMIT above.)
+ctest --output-on-failure -j"$(getconf _NPROCESSORS_ONLN)" -E "rostest|stability_sweep|soak|rviz_view|launch_sequence" "$@"

@@ -156,6 +156,7 @@ std::vector<needle_sim::TargetState> targetStates(const StepFrame& f, const std:
     m.electrode_tip_distance = l.electrode >= 0 ? t.tip_distances[l.electrode] : nan;
     m.displacement_error = toVector(t.has_error ? t.error : Vec3::Constant(nan));
     m.displacement_error_bound = t.has_error ? t.error_bound : nan;
+    m.error_step = t.has_error ? t.error_step : -1;
     out.push_back(m);
   }
   return out;

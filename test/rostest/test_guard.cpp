@@ -108,6 +108,15 @@ TEST(CommandGuard, EveryRuleRejectsOrSlowsDownAndTheBaseNeverMovesFasterThanTheL
   auto sub = nh.subscribe<needle_sim::SimStatus>("status", 5000, [&](const needle_sim::SimStatus::ConstPtr& s) { rec.on(s); });
   ros::Publisher cmd = nh.advertise<geometry_msgs::PoseStamped>("needle/command_pose", 1000);
   tf2_ros::StaticTransformBroadcaster static_tf;
+  // world -> tissue (+10 cm in x) for part 6, sent now: the node has it by then, however
+  // slowly its tf listener connects (a static transform is latched).
+  geometry_msgs::TransformStamped w;
+  w.header.stamp = ros::Time::now();
+  w.header.frame_id = "world";
+  w.child_frame_id = "tissue";
+  w.transform.translation.x = 0.1;
+  w.transform.rotation.w = 1;
+  static_tf.sendTransform(w);
   ros::AsyncSpinner spinner(2);
   spinner.start();
   ASSERT_TRUE(waitFor([&] { return rec.size() > 20; }, 30.0));
@@ -207,14 +216,6 @@ TEST(CommandGuard, EveryRuleRejectsOrSlowsDownAndTheBaseNeverMovesFasterThanTheL
 
   // 6. Frames: a pose in `world` (world -> tissue: +10 cm in x, static) is followed in the
   //    tissue frame; a frame without a transform and an empty frame are rejected.
-  geometry_msgs::TransformStamped w;
-  w.header.stamp = ros::Time::now();
-  w.header.frame_id = "world";
-  w.child_frame_id = "tissue";
-  w.transform.translation.x = 0.1;
-  w.transform.rotation.w = 1;
-  static_tf.sendTransform(w);
-  ros::WallDuration(0.5).sleep();
   auto in_world = pose(x - 0.001 + 0.1);
   in_world.header.frame_id = "world";
   in_world.header.stamp = ros::Time::now();

@@ -237,6 +237,17 @@ TEST(Interfaces, TfTreeTrajectoriesReconfigureAndTheInsertAction) {
     EXPECT_TRUE(std::isfinite(ts.displacement_error.x) && std::isfinite(ts.displacement_error.z));
     EXPECT_LE(std::abs(ts.displacement_error.x), ts.displacement_error_bound);
   }
+  // The estimate's own step, refreshed every ~target_error_period (0.2 s: 200 steps).
+  int64_t first_error_step;
+  {
+    std::lock_guard<std::mutex> lk(tm);
+    first_error_step = ts.error_step;
+  }
+  EXPECT_GE(first_error_step, 0);
+  EXPECT_TRUE(waitFor([&] {
+    std::lock_guard<std::mutex> lk(tm);
+    return ts.error_step >= first_error_step + 150;
+  }, 20.0)) << "the estimate's step did not advance from " << first_error_step;
   //    4a. To 3 mm before the target at 10 mm/s: 12 mm of travel in 1.2 s.
   std::atomic<int> feedback{0};
   std::atomic<double> last_distance{NAN};

@@ -10,7 +10,6 @@
 #include <cmath>
 #include <mutex>
 
-#include <nav_msgs/Path.h>
 #include <needle_sim/SimStatus.h>
 
 namespace {
@@ -28,23 +27,21 @@ double tip() {
 
 TEST(TfCommands, BaseFollowsTheTransform) {
   ros::NodeHandle nh("needle_sim");  // the node's private namespace
-  auto s1 = nh.subscribe<nav_msgs::Path>("needle/path", 10, [&](const nav_msgs::Path::ConstPtr& p) {
-    std::lock_guard<std::mutex> lk(m);
-    if (!p->poses.empty()) tip_x = p->poses.back().pose.position.x;
-  });
-  auto s2 = nh.subscribe<needle_sim::SimStatus>("status", 10, [&](const needle_sim::SimStatus::ConstPtr& s) {
+  // The tip from the status (every step), not the path (throttled by wall time).
+  auto s2 = nh.subscribe<needle_sim::SimStatus>("status", 100, [&](const needle_sim::SimStatus::ConstPtr& s) {
     std::lock_guard<std::mutex> lk(m);
     status = *s;
     have_status = true;
+    if (!s->tips.empty()) tip_x = s->tips[0].x;
   });
   ros::AsyncSpinner spinner(2);
   spinner.start();
   ASSERT_TRUE(waitFor([] { return std::isfinite(tip()); }, 30.0));
   const double tip0 = tip();
   tf2_ros::TransformBroadcaster br;
-  auto send = [&](double x) {
+  auto send = [&](const ros::Time& stamp, double x) {
     geometry_msgs::TransformStamped t;
-    t.header.stamp = ros::Time::now();
+    t.header.stamp = stamp;
     t.header.frame_id = "tissue";
     t.child_frame_id = "needle_base";
     t.transform.translation.x = x;
@@ -53,25 +50,53 @@ TEST(TfCommands, BaseFollowsTheTransform) {
     t.transform.rotation.w = 1;
     br.sendTransform(t);
   };
-  // The rest pose first, until the node has it (a new tf publisher takes a moment to connect).
-  for (int k = 0; k < 50; ++k) {
-    send(-0.035);
+  auto running = [] {
+    std::lock_guard<std::mutex> lk(m);
+    return have_status && status.state == "running";
+  };
+  // The rest pose first, until the node has taken it (a new tf publisher takes a moment to
+  // connect, longer on a loaded machine).
+  for (int k = 0; k < 3000 && !running(); ++k) {
+    send(ros::Time::now(), -0.035);
     ros::WallDuration(0.01).sleep();
   }
-  const ros::WallTime t0 = ros::WallTime::now();
+  ASSERT_TRUE(running()) << "the node never took the rest pose from tf";
+  // 1 cm/s for 1 s; one clock reading per sample: the pose is where the motion is at its stamp.
+  const ros::Time start = ros::Time::now();
   double x = -0.035;
   for (;;) {
-    const double t = (ros::WallTime::now() - t0).toSec();
+    const ros::Time stamp = ros::Time::now();
+    const double t = (stamp - start).toSec();
     if (t > 1.0) break;
     x = -0.035 + 0.01 * t;
-    send(x);
+    send(stamp, x);
     ros::WallDuration(0.01).sleep();
   }
-  // The transform stops (stale): the base holds where it is.
-  ros::WallDuration(0.5).sleep();
+  // The last sample, then the transform stops (stale): the base holds where it is.
+  send(ros::Time::now(), x);
+  const double x_end = x;
+  ASSERT_TRUE(waitFor(
+      [&] {
+        std::lock_guard<std::mutex> lk(m);
+        return !status.bases.empty() && std::abs(status.bases[0].position.x - x_end) < 1e-9;
+      },
+      10.0))
+      << "the base did not reach the last transform";
+  ros::WallDuration(0.2).sleep();
   const double tip1 = tip();
-  EXPECT_NEAR(tip1 - tip0, 0.010, 0.0015);
-  ros::WallDuration(0.5).sleep();
+  EXPECT_NEAR(tip1 - tip0, x_end + 0.035, 0.0015);
+  EXPECT_NEAR(x_end + 0.035, 0.010, 0.0005);
+  uint64_t step1;
+  {
+    std::lock_guard<std::mutex> lk(m);
+    step1 = status.step;
+  }
+  ASSERT_TRUE(waitFor(
+      [&] {
+        std::lock_guard<std::mutex> lk(m);
+        return status.step > step1 + 200;
+      },
+      20.0));
   EXPECT_NEAR(tip(), tip1, 2e-5);
   std::lock_guard<std::mutex> lk(m);
   EXPECT_EQ(status.state, "running");

@@ -282,6 +282,10 @@ TEST(Adaptivity, InsertionReembedsConstraintPointsExactly) {
 // steps, scripts/adaptivity_study.py: 0.059 and 0.0067). (Uniform 16x8x8: 0.37 and
 // 0.072 with 4,131 DOFs; 8x4x4: 0.61 and 0.13.)
 TEST(Adaptivity, PhantomInsertionAgreesWithUniform32x16x16) {
+#ifdef NEEDLE_SIM_SANITIZED
+  GTEST_SKIP() << "a whole adaptive insertion (2 min under ASan): InsertionReembedsConstraintPointsExactly runs the "
+                  "same mesh changes under the sanitizers";
+#endif
   std::ifstream in(std::string(NEEDLE_SIM_SOURCE_DIR) + "/test/data/reference/phantom_insertion_32x16x16_probes.csv");
   ASSERT_TRUE(in) << "reference file missing";
   std::string line;

@@ -119,6 +119,11 @@ TEST(Cli, UsageErrorsExitWith2) {
   EXPECT_EQ(runTool("run /nonexistent/scene.yaml --out '" + out.string() + "'").status, 2);
   EXPECT_EQ(runTool("run '" + kSrc + "/config/scenes/phantom_8x4x4.yaml' --out '" + out.string() + "' --set nonsense").status, 2);
   EXPECT_EQ(runTool("check '" + kSrc + "/config/scenes/phantom_8x4x4.yaml'").status, 0);
+  // The target estimate is timed on adaptive scenes only: asked of another, a clear error.
+  const auto b = runTool("bench --scene '" + kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml' --target 0.022 0.01 0.01 "
+                         "--target-error-every 20");
+  EXPECT_EQ(b.status, 2) << b.err;
+  EXPECT_NE(b.err.find("--target-error-every"), std::string::npos) << b.err;
 }
 
 TEST(Cli, PredictReportsAndRefusesBadPlans) {

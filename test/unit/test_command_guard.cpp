@@ -156,6 +156,48 @@ TEST(CommandGuard, AJumpIsApproachedAtTheSpeedLimitAlsoAfterAPause) {
   EXPECT_NEAR((traj.pose(4.0).position - held).norm(), 0.0, 1e-12);
 }
 
+// A stream well within the limits (1 cm/s, 100 Hz) that reaches the node late (15 ms, every
+// other sample skipped, as a lagging node sampling tf sees it) is not a clamped command: the
+// base catches up within the limit, and nothing is counted. A jump that arrives late is.
+TEST(CommandGuard, ALateStreamWithinTheLimitsIsNotCountedAsClamped) {
+  CommandGuard g = guard();
+  BaseTrajectory traj(kRest);
+  double now = 0;
+  for (int k = 1; k <= 100; ++k) {
+    const double stamp = 0.01 * k;
+    if (k % 2 == 1) continue;  // skipped: the node looked up tf only every 20 ms
+    now = stamp + 0.015;
+    const Admission a = g.admit(0, at(kRest.position + Vec3(0.01 * stamp, 0, 0), stamp), now);
+    ASSERT_TRUE(a.accepted);
+    const Following f = g.follow(0, traj, a, now, kDt, false);
+    EXPECT_FALSE(f.limited) << k;
+  }
+  EXPECT_EQ(g.limited(), 0u);
+  EXPECT_LE(sampledRates(traj, 0.0, now + 0.1).linear, 0.05 * (1 + 1e-6));
+  EXPECT_NEAR(traj.pose(now + 0.1).position.x() - kRest.position.x(), 0.01, 1e-12);
+  // The node stalls 40 ms: eight 200 Hz samples of the same 1 cm/s motion come in one step.
+  // Each supersedes the one before, unreached; the batch had the whole stall for its motion.
+  const Vec3 p1 = kRest.position + Vec3(0.01, 0, 0);
+  const double s1 = 1.0;
+  now = s1 + 0.045;
+  for (int k = 1; k <= 8; ++k) {
+    const double stamp = s1 + 0.005 * k;
+    const Admission a = g.admit(0, at(p1 + Vec3(0.01 * (stamp - s1), 0, 0), stamp), now);
+    ASSERT_TRUE(a.accepted);
+    EXPECT_FALSE(g.follow(0, traj, a, now, kDt, false).limited) << k;
+  }
+  EXPECT_EQ(g.limited(), 0u);
+  EXPECT_LE(sampledRates(traj, 0.0, now + 0.1).linear, 0.05 * (1 + 1e-6));
+  // 20 mm asked right after the batch, arriving 15 ms late: too fast for any stream.
+  const double stamp = s1 + 0.045;
+  now = stamp + 0.015;
+  const Admission jump = g.admit(0, at(p1 + Vec3(0.02, 0, 0), stamp), now);
+  ASSERT_TRUE(jump.accepted);
+  EXPECT_TRUE(g.follow(0, traj, jump, now, kDt, false).limited);
+  EXPECT_EQ(g.count(GuardRule::LinearSpeed), 1u);
+  EXPECT_LE(sampledRates(traj, 0.0, now + 1.0).linear, 0.05 * (1 + 1e-6));
+}
+
 TEST(CommandGuard, TurnsAreLimitedAndMoreSoInsideTheTissue) {
   CommandGuard g = guard();
   BaseTrajectory traj(kRest);

@@ -203,6 +203,9 @@ TEST(Interaction, WithdrawalWithAndWithoutFriction) {
 // the line of constraint point forces, where the exact field is singular and the FE values
 // near the tip need not converge pointwise (they grow with refinement, as the paper notes).
 TEST(Interaction, ProbeDisplacementsConvergeWithMeshRefinement) {
+#ifdef NEEDLE_SIM_SANITIZED
+  GTEST_SKIP() << "three insertions up to 32x16x16 (2 min under ASan): the shorter insertions here run the same path";
+#endif
   std::vector<std::vector<Vec3>> result;
   for (const char* cells : {"[8,4,4]", "[16,8,8]", "[32,16,16]"}) {
     Simulation sim(phantom({std::string("tissue.grid.cells=") + cells, "time.dt=0.005", "time.duration=0.8",

@@ -133,7 +133,7 @@ TEST(Refinement, PatchTestWithHangingNodesIsExact) {
     EXPECT_LT(err, 1e-10 * (target - a.mesh.restPositions()).lpNorm<Eigen::Infinity>()) << "seed " << seed;
     SprEstimator spr(body.model());
     const ErrorEstimate est = spr.estimate(x);
-    EXPECT_LT(est.global, 1e-8 * est.energy);
+    EXPECT_LT(est.global, 1e-9 * est.energy) << "seed " << seed;  // measured 1.3e-10 (QR fit)
   }
 }
 

@@ -13,6 +13,7 @@
 //     eta_e^2 = int_e (sigma_h - sigma*)^T D^-1 (sigma_h - sigma*) dV (2x2x2 Gauss, sigma_h
 //     at the Gauss points), and the global estimate eta = sqrt(sum eta_e^2).
 // Computed only when asked for: adaptivity, or an error output.
+#include <array>
 #include <vector>
 
 #include "needle_sim/core/types.hpp"
@@ -29,6 +30,9 @@ struct ErrorEstimate {
   double global = 0;                    // sqrt(sum eta_e^2)
   double max = 0;
   double energy = 0;                    // sqrt(int sigma_h^T D^-1 sigma_h), for relative errors
+  // sigma* - sigma_h at each element's 2x2x2 Gauss points (the goal estimate's duals pair
+  // with it: SprEstimator::dual).
+  std::vector<std::array<Stress, 8>> gauss_error;
 };
 
 class SprEstimator {
@@ -70,10 +74,32 @@ class SprEstimator {
  public:
 
  private:
+  // Per rest shape (the model's element references): B at the centroid and at the 2x2x2
+  // Gauss points with det J there (the volume fraction not included).
+  struct ShapeTables {
+    Eigen::Matrix<double, 6, 24> centroid_B;
+    std::array<Eigen::Matrix<double, 6, 24>, 8> gauss_B;
+    std::array<double, 8> gauss_detJ{};
+  };
+  const ShapeTables& shape(int e) const { return shapes_[model_.referenceIndex(e)]; }
+  // Element rotations of positions x, kept for the last two position vectors asked (the
+  // primal's and the reference's: the duals of a pass ask for the same ones again).
+  const std::vector<Mat3>& rotations(const VecX& x) const;
+
   const CorotationalHexModel& model_;
   std::vector<std::vector<int>> node_elements_;
   std::vector<Vec3> centroids_;
   std::vector<char> interior_;  // node has a full 3D patch
+  // Interior nodes: the linear fit as a map from the patch's centroid values to the
+  // coefficients (4 x patch size; coefficients = fit * values), made once per mesh.
+  std::vector<Eigen::Matrix<double, 4, Eigen::Dynamic>> fit_;
+  std::vector<ShapeTables> shapes_;
+  struct RotationCache {
+    VecX x;
+    std::vector<Mat3> R;
+  };
+  mutable std::array<RotationCache, 2> rotation_cache_;
+  mutable int rotation_next_ = 0;
 };
 
 }  // namespace needle_sim

@@ -165,11 +165,20 @@ class CommandGuard {
   double needed(int n, const BaseTrajectory& traj, const BasePose& from, const BasePose& to, bool inserted,
                 const CommandLimits& l, GuardRule& rule) const;
 
-  mutable std::mutex mutex_;  // limits_, last_stamp_, last_roll_
+  mutable std::mutex mutex_;  // limits_, last_stamp_, last_roll_, taken_
   CommandLimits limits_;
   std::vector<NeedleInfo> needles_;
   std::vector<double> last_stamp_;  // -inf: none yet
   std::vector<double> last_roll_;
+  // Per needle, the asked times of what follow() took: the last command taken at an earlier
+  // step than the one under way, the first and the last taken in it (a late batch's lag and
+  // the time its stream gave the motion).
+  struct Taken {
+    double step_now = std::numeric_limits<double>::quiet_NaN();
+    double before = -std::numeric_limits<double>::infinity(), first = 0,
+           last = -std::numeric_limits<double>::infinity();
+  };
+  std::vector<Taken> taken_;
   std::array<std::atomic<uint64_t>, kGuardRules> counts_{};
   std::atomic<long> limits_version_{0};
 };

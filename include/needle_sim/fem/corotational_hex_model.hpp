@@ -36,6 +36,7 @@ class CorotationalHexModel {
   // Number of distinct element shapes, i.e. K0 matrices stored.
   int numReferences() const { return static_cast<int>(refs_.size()); }
   const hex8::ElementReference& reference(int e) const { return refs_[ref_of_[e]]; }
+  int referenceIndex(int e) const { return ref_of_[e]; }  // elements of one rest shape share it
 
   // Integral of N_a over the mesh, per node: the lumped mass is density times this.
   const VecX& nodalVolume() const { return nodal_volume_; }

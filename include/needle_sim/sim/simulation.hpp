@@ -187,6 +187,7 @@ class Simulation {
   mutable bool estimate_ever_ = false;
   Options options_;
   mutable std::vector<TargetQoi> qois_;  // per target, on the current mesh (empty: to be made)
+  mutable std::vector<Eigen::MatrixXd> duals_;  // per target, the last duals on this mesh (CG's initial guess)
   mutable std::vector<TargetError> target_errors_;
   mutable long target_errors_step_ = -1;
   mutable bool errors_ever_ = false;

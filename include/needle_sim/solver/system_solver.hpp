@@ -69,8 +69,9 @@ class SystemSolver {
   // Several right-hand sides of (c_m M + c_k K) X = B with CG preconditioned by the factor as
   // it is, whatever matrix it was made for (the dual problems of a goal-oriented estimate:
   // the stiffness with the dynamic step's factor), never refactorising (a factor is made
-  // only if there is none yet). Returns the iterations of the slowest column; x_converged
-  // false if a column missed the tolerance within max_iterations.
+  // only if there is none yet). X, when it has B's shape, is the initial guess. Returns the
+  // iterations of the slowest column; converged false if a column missed the tolerance
+  // within max_iterations.
   LinearSolveStats solveWithFactor(const VecX& mass_free, double c_m, double c_k, const Eigen::MatrixXd& B,
                                    Eigen::MatrixXd& X, double tolerance, int max_iterations, bool& converged);
   // out = A v over the free DOFs, matrix-free.

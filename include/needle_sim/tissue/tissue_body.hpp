@@ -82,8 +82,8 @@ class TissueBody {
   // The dual problems of a goal-oriented estimate: K Z = G (G: loads, 3n per column) with
   // the current tangent and the Dirichlet conditions, by CG on the body's factor (that of the
   // last step, dynamic or static: never a new one). Z: displacements (3n per column, zero
-  // on prescribed DOFs, hanging DOFs from their masters). Returns false when CG did not
-  // converge within max_iterations.
+  // on prescribed DOFs, hanging DOFs from their masters; as it comes, the initial guess
+  // when it has G's shape). Returns false when CG did not converge within max_iterations.
   bool solveDual(const Eigen::MatrixXd& G, Eigen::MatrixXd& Z, int& iterations, int max_iterations = 200) const;
 
   double kineticEnergy() const;

@@ -2,6 +2,7 @@
 
 #include <Eigen/Dense>
 #include <array>
+#include <cassert>
 #include <cmath>
 
 #include "needle_sim/fem/hex8.hpp"
@@ -21,33 +22,33 @@ Stress rotate(const Mat3& R, const Stress& s) {
 
 // Least-squares linear fit sigma(x) = a + b (x - x0) through samples; returns the
 // coefficients (4 x 6) and whether the fit is a full 3D one. A full patch (the common
-// case) goes through the 4 x 4 normal equations in scaled coordinates; a rank-deficient
-// one through a complete orthogonal decomposition (minimum-norm fit).
+// case) is solved by Householder QR of the m x 4 sample matrix in scaled coordinates (the
+// normal equations would square its condition number: on the thin patches at hanging
+// nodes the exact patch test lost two digits, more with clang); a rank-deficient one through a
+// complete orthogonal decomposition (minimum-norm fit).
 bool fitLinear(const std::vector<Vec3>& pts, const std::vector<Stress>& vals, const Vec3& x0,
                Eigen::Matrix<double, 4, 6>& coef) {
   const int m = static_cast<int>(pts.size());
   double scale = 0;
   for (int i = 0; i < m; ++i) scale = std::max(scale, (pts[i] - x0).norm());
   if (scale == 0) scale = 1;
-  Eigen::Matrix4d M = Eigen::Matrix4d::Zero();
-  Eigen::Matrix<double, 4, 6> rhs = Eigen::Matrix<double, 4, 6>::Zero();
+  Eigen::Matrix<double, Eigen::Dynamic, 4> P(m, 4);
+  Eigen::Matrix<double, Eigen::Dynamic, 6> V(m, 6);
   for (int i = 0; i < m; ++i) {
-    Eigen::Vector4d p;
-    p << 1, (pts[i] - x0) / scale;
-    M.noalias() += p * p.transpose();
-    rhs.noalias() += p * vals[i].transpose();
+    P(i, 0) = 1;
+    P.block<1, 3>(i, 1) = ((pts[i] - x0) / scale).transpose();
+    V.row(i) = vals[i].transpose();
   }
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix4d> eig(M, Eigen::EigenvaluesOnly);
-  const bool full = m >= 4 && eig.eigenvalues()[0] > 1e-12 * eig.eigenvalues()[3];
-  if (full) {
-    coef = M.ldlt().solve(rhs);
-  } else {
-    Eigen::MatrixXd P(m, 4), V(m, 6);
-    for (int i = 0; i < m; ++i) {
-      P(i, 0) = 1;
-      P.block<1, 3>(i, 1) = ((pts[i] - x0) / scale).transpose();
-      V.row(i) = vals[i].transpose();
-    }
+  bool full = false;
+  if (m >= 4) {
+    const Eigen::HouseholderQR<Eigen::Matrix<double, Eigen::Dynamic, 4>> qr(P);
+    const Eigen::Vector4d r = qr.matrixQR().topRows<4>().diagonal().cwiseAbs();
+    // |R_ii| bounds the singular values from above and below within the sample count:
+    // a ratio of 1e-6 is the normal equations' former 1e-12 on eigenvalues.
+    full = r.minCoeff() > 1e-6 * r.maxCoeff();
+    if (full) coef = qr.solve(V);
+  }
+  if (!full) {
     Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> cod(P);
     cod.setThreshold(1e-8);
     coef = cod.solve(V);
@@ -86,13 +87,53 @@ SprEstimator::SprEstimator(const CorotationalHexModel& model) : model_(model) {
     for (int a : mesh.element(e)) node_elements_[a].push_back(e);
   }
   interior_.assign(mesh.numNodes(), 0);
+  fit_.resize(mesh.numNodes());
   for (int n = 0; n < mesh.numNodes(); ++n) {
-    if (node_elements_[n].size() < 4) continue;
+    const int m = static_cast<int>(node_elements_[n].size());
+    if (m < 4) continue;
+    // The fit of each unit vector of values: the columns of the fit's linear map.
     std::vector<Vec3> pts;
     for (int e : node_elements_[n]) pts.push_back(centroids_[e]);
-    Eigen::Matrix<double, 4, 6> c;
-    interior_[n] = fitLinear(pts, std::vector<Stress>(pts.size(), Stress::Zero()), mesh.node(n), c);
+    Eigen::Matrix<double, 4, Eigen::Dynamic> F(4, m);
+    bool full = true;
+    for (int k = 0; k < m && full; ++k) {
+      std::vector<Stress> unit(m, Stress::Zero());
+      unit[k][0] = 1;
+      Eigen::Matrix<double, 4, 6> c;
+      full = fitLinear(pts, unit, mesh.node(n), c);
+      F.col(k) = c.col(0);
+    }
+    interior_[n] = full;
+    if (full) fit_[n] = std::move(F);
   }
+  const GaussTable& gt = gaussTable();
+  shapes_.resize(model.numReferences());
+  std::vector<char> done(shapes_.size(), 0);
+  for (int e = 0; e < mesh.numElements(); ++e) {
+    const int r = model.referenceIndex(e);
+    if (done[r]) continue;
+    done[r] = 1;
+    const auto X = mesh.elementCorners(e);
+    ShapeTables& t = shapes_[r];
+    t.centroid_B = hex8::strainDisplacement(model.reference(e).grad_centroid);
+    for (int q = 0; q < 8; ++q) {
+      const Mat3 J = X.transpose() * gt.grad[q];
+      t.gauss_detJ[q] = J.determinant();
+      t.gauss_B[q] = hex8::strainDisplacement(gt.grad[q] * J.inverse());
+    }
+  }
+}
+
+const std::vector<Mat3>& SprEstimator::rotations(const VecX& x) const {
+  for (auto& c : rotation_cache_)
+    if (c.x.size() == x.size() && c.x.size() > 0 && c.x == x) return c.R;
+  RotationCache& c = rotation_cache_[rotation_next_];
+  rotation_next_ = 1 - rotation_next_;
+  c.x = x;
+  const int ne = model_.mesh().numElements();
+  c.R.resize(ne);
+  for (int e = 0; e < ne; ++e) c.R[e] = model_.computeRotation(e, x);
+  return c.R;
 }
 
 Stress SprEstimator::elementStress(const VecX& x, int e, const Vec3& xi) const {
@@ -140,14 +181,10 @@ std::vector<Stress> SprEstimator::recover(const std::vector<Stress>& centroid) c
   std::vector<int> borrowed_count(nn, 0);
   for (int n = 0; n < nn; ++n) {
     if (!interior_[n]) continue;
-    std::vector<Vec3> pts;
-    std::vector<Stress> vals;
-    for (int e : node_elements_[n]) {
-      pts.push_back(centroids_[e]);
-      vals.push_back(centroid[e]);
-    }
-    Eigen::Matrix<double, 4, 6> c;
-    fitLinear(pts, vals, mesh.node(n), c);
+    Eigen::Matrix<double, 4, 6> c = Eigen::Matrix<double, 4, 6>::Zero();
+    const auto& F = fit_[n];
+    for (size_t k = 0; k < node_elements_[n].size(); ++k)
+      c.noalias() += F.col(static_cast<Eigen::Index>(k)) * centroid[node_elements_[n][k]].transpose();
     out[n] = c.row(0).transpose();
     count[n] = 1;
     for (int e : node_elements_[n])
@@ -183,20 +220,15 @@ SprEstimator::DualIndicators SprEstimator::dual(const VecX& x, const VecX* refer
   const int ne = mesh.numElements();
   const auto& D = model_.material().elasticity();
   const Eigen::Matrix<double, 6, 6> Dinv = D.inverse();
-  std::vector<Mat3> R(ne), R0(reference ? ne : 0);
+  const std::vector<Mat3>& R = rotations(x);
   std::vector<Stress> centroid(ne);
-  const Eigen::Matrix<double, 8, 3> Gc = hex8::shapeGradNatural(Vec3::Zero());
   // The increment's element displacements in the rotated frames (the linearised corotational
   // strain of dz at x); the primal's as in estimate().
   std::vector<Eigen::Matrix<double, 24, 1>> zl(ne);
   for (int e = 0; e < ne; ++e) {
-    R[e] = model_.computeRotation(e, x);
-    if (reference) R0[e] = model_.computeRotation(e, *reference);
     const auto& el = mesh.element(e);
     for (int a = 0; a < 8; ++a) zl[e].segment<3>(3 * a) = R[e].transpose() * node3(dz, el[a]);
-    const auto X = mesh.elementCorners(e);
-    const Mat3 J = X.transpose() * Gc;
-    centroid[e] = rotate(R[e], D * (hex8::strainDisplacement(Gc * J.inverse()) * zl[e]));
+    centroid[e] = rotate(R[e], D * (shape(e).centroid_B * zl[e]));
   }
   const std::vector<Stress> zstar = recover(centroid);
   const GaussTable& gt = gaussTable();
@@ -204,27 +236,21 @@ SprEstimator::DualIndicators SprEstimator::dual(const VecX& x, const VecX* refer
   out.eta.assign(ne, 0.0);
   out.mixed.assign(ne, 0.0);
   double sum = 0;
+  // The primal's sigma* - sigma_h at the Gauss points comes with its estimate (of x and
+  // reference, as here).
+  assert(primal.gauss_error.size() == static_cast<size_t>(ne));
   for (int e = 0; e < ne; ++e) {
     const auto& el = mesh.element(e);
-    const auto X = mesh.elementCorners(e);
-    const Eigen::Matrix<double, 24, 1> u = corotatedDisplacement(x, e, R[e]);
-    Eigen::Matrix<double, 24, 1> u0;
-    if (reference) u0 = corotatedDisplacement(*reference, e, R0[e]);
+    const ShapeTables& st = shape(e);
     const double frac = mesh.fraction(e);
     double eta2 = 0, mixed = 0;
     for (int q = 0; q < 8; ++q) {
-      const Mat3 J = X.transpose() * gt.grad[q];
-      const double detJ = J.determinant() * frac;
-      const auto B = hex8::strainDisplacement(gt.grad[q] * J.inverse());
-      Stress us = Stress::Zero(), zs = Stress::Zero();
-      for (int a = 0; a < 8; ++a) {
-        us += gt.shape[q][a] * primal.recovered[el[a]];
-        zs += gt.shape[q][a] * zstar[el[a]];
-      }
-      Stress uh = rotate(R[e], D * (B * u));
-      if (reference) uh -= rotate(R0[e], D * (B * u0));
-      const Stress zh = rotate(R[e], D * (B * zl[e]));
-      const Stress du = us - uh, dzs = zs - zh;
+      const double detJ = st.gauss_detJ[q] * frac;
+      Stress zs = Stress::Zero();
+      for (int a = 0; a < 8; ++a) zs += gt.shape[q][a] * zstar[el[a]];
+      const Stress zh = rotate(R[e], D * (st.gauss_B[q] * zl[e]));
+      const Stress& du = primal.gauss_error[e][q];
+      const Stress dzs = zs - zh;
       eta2 += dzs.dot(Dinv * dzs) * detJ;
       mixed += du.dot(Dinv * dzs) * detJ;
     }
@@ -239,17 +265,17 @@ SprEstimator::DualIndicators SprEstimator::dual(const VecX& x, const VecX* refer
 
 ErrorEstimate SprEstimator::estimate(const VecX& x, const VecX* reference) const {
   const HexMesh& mesh = model_.mesh();
-  const int ne = mesh.numElements(), nn = mesh.numNodes();
+  const int ne = mesh.numElements();
   ErrorEstimate est;
   est.centroid_stress.resize(ne);
-  std::vector<Mat3> R(ne), R0(reference ? ne : 0);
+  const std::vector<Mat3>& R = rotations(x);
+  static const std::vector<Mat3> none;
+  const std::vector<Mat3>& R0 = reference ? rotations(*reference) : none;
+  const auto& D0 = model_.material().elasticity();
   for (int e = 0; e < ne; ++e) {
-    R[e] = model_.computeRotation(e, x);
-    est.centroid_stress[e] = elementStress(x, e, Vec3::Zero(), R[e]);
-    if (reference) {
-      R0[e] = model_.computeRotation(e, *reference);
-      est.centroid_stress[e] -= elementStress(*reference, e, Vec3::Zero(), R0[e]);
-    }
+    const auto& Bc = shape(e).centroid_B;
+    est.centroid_stress[e] = rotate(R[e], D0 * (Bc * corotatedDisplacement(x, e, R[e])));
+    if (reference) est.centroid_stress[e] -= rotate(R0[e], D0 * (Bc * corotatedDisplacement(*reference, e, R0[e])));
   }
 
   est.recovered = recover(est.centroid_stress);
@@ -259,10 +285,11 @@ ErrorEstimate SprEstimator::estimate(const VecX& x, const VecX* reference) const
   const Eigen::Matrix<double, 6, 6> Dinv = D.inverse();
   const GaussTable& gt = gaussTable();
   est.eta.assign(ne, 0.0);
+  est.gauss_error.resize(ne);
   double sum = 0, energy = 0;
   for (int e = 0; e < ne; ++e) {
     const auto& el = mesh.element(e);
-    const auto X = mesh.elementCorners(e);
+    const ShapeTables& st = shape(e);
     const Eigen::Matrix<double, 24, 1> u = corotatedDisplacement(x, e, R[e]);
     Eigen::Matrix<double, 24, 1> u0;
     if (reference) u0 = corotatedDisplacement(*reference, e, R0[e]);
@@ -270,14 +297,14 @@ ErrorEstimate SprEstimator::estimate(const VecX& x, const VecX* reference) const
     // Only the material part of an immersed cell counts (its volume fraction).
     const double frac = mesh.fraction(e);
     for (int q = 0; q < 8; ++q) {
-      const Mat3 J = X.transpose() * gt.grad[q];
-      const double detJ = J.determinant() * frac;
+      const double detJ = st.gauss_detJ[q] * frac;
       Stress star = Stress::Zero();
       for (int a = 0; a < 8; ++a) star += gt.shape[q][a] * est.recovered[el[a]];
-      const auto B = hex8::strainDisplacement(gt.grad[q] * J.inverse());
+      const auto& B = st.gauss_B[q];
       Stress sh = rotate(R[e], D * (B * u));
       if (reference) sh -= rotate(R0[e], D * (B * u0));
       const Stress d = sh - star;
+      est.gauss_error[e][q] = -d;
       eta2 += d.dot(Dinv * d) * detJ;
       energy += sh.dot(Dinv * sh) * detJ;
     }

@@ -115,6 +115,7 @@ void CommandGuard::restart() {
   last_stamp_.assign(needles_.size(), -std::numeric_limits<double>::infinity());
   last_roll_.clear();
   for (const auto& n : needles_) last_roll_.push_back(n.rest.roll);
+  taken_.assign(needles_.size(), Taken{});
 }
 
 std::array<uint64_t, kGuardRules> CommandGuard::counts() const {
@@ -229,13 +230,31 @@ Following CommandGuard::follow(int n, BaseTrajectory& traj, const Admission& a, 
   const double ts = std::max(now, traj.lastKeyTimeBefore(te));
   traj.holdFrom(ts);
   const BasePose from = traj.pose(ts);
+  Taken taken;
+  {
+    std::lock_guard<std::mutex> lk(mutex_);
+    Taken& k = taken_[n];
+    if (!(k.step_now == now)) {
+      k.before = k.last;
+      k.first = a.at;
+      k.step_now = now;
+    }
+    k.last = a.at;
+    taken = k;
+  }
   Following f;
   const double need = needed(n, traj, from, a.pose, inserted, lim, f.rule);
   double t = te;
   if (ts + need > te) {
     // Too fast for a limit: reached later, at the limit's pace. Counted when it is more than
-    // a step late (a stream's jitter of arrival makes single steps a little short).
-    if (ts + need > te + dt) {
+    // a step late (a stream's jitter of arrival makes single steps a little short). Commands
+    // that arrive after their time (the node lagged, a tf sample was skipped, a batch came in
+    // one step) are given the lag of the first of them, up to the time their stream gave
+    // the motion since the last command taken at an earlier step: that lag is the node's,
+    // reported as lag, not a command too fast.
+    const double late = std::max(0.0, now + dt - taken.first);
+    const double fair_end = te + std::min(late, std::max(0.0, a.at - taken.before));
+    if (ts + need > fair_end + dt) {
       f.limited = true;
       record(f.rule);
     }

@@ -318,6 +318,7 @@ void Simulation::forgetEstimates() {
   estimator_.reset();
   estimate_step_ = -1;
   qois_.clear();
+  duals_.clear();
   target_errors_step_ = -1;
   goal_primal_step_ = -1;
   target_error_steps_.assign(target_error_steps_.size(), -1);
@@ -352,7 +353,8 @@ const TargetError& Simulation::targetError(int i) const {
     }
     primal = &goal_primal_;
   }
-  Eigen::MatrixXd Z;
+  if (duals_.size() != targets_.size()) duals_.resize(targets_.size());
+  Eigen::MatrixXd& Z = duals_[i];  // the last pass's on this mesh: CG starts from it
   int iterations = 0;
   TargetError e;
   if (tissue_->solveDual(qois_[i].load(mesh), Z, iterations))

@@ -112,10 +112,11 @@ LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m
   const auto t0 = steadyNow();
   auto A = [&](const VecX& v, VecX& out) { apply(mass_free, c_m, c_k, v, out); };
   auto M = [&](const VecX& r, VecX& z) { chol_.solve(r, z); };
-  X.setZero(B.rows(), B.cols());
+  // X as it comes is the initial guess when it has B's shape (a previous pass's solution).
+  if (X.rows() != B.rows() || X.cols() != B.cols() || !X.allFinite()) X.setZero(B.rows(), B.cols());
   converged = true;
   for (Eigen::Index j = 0; j < B.cols(); ++j) {
-    VecX x = VecX::Zero(B.rows());
+    VecX x = X.col(j);
     const PcgResult r = pcg(A, M, B.col(j), x, tolerance, max_iterations);
     X.col(j) = x;
     st.iterations = std::max(st.iterations, r.iterations);
