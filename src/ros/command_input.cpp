@@ -133,10 +133,16 @@ void SimulatorRos::lookupTfCommands() {
     try {
       tr = tf_buffer_->lookupTransform(params_->tissue_frame, base_frames_[i], ros::Time(0));
     } catch (const tf2::TransformException& e) {
-      guard_->record(GuardRule::Frame);
-      warnRule(GuardRule::Frame, source, std::string("no base pose from tf: ") + e.what() + "; the base holds");
+      // Looked up every step: an outage (or the robot not publishing yet) is one rejection,
+      // not one per step.
+      if (!tf_missing_[i]) {
+        guard_->record(GuardRule::Frame);
+        warnRule(GuardRule::Frame, source, std::string("no base pose from tf: ") + e.what() + "; the base holds");
+      }
+      tf_missing_[i] = 1;
       continue;
     }
+    tf_missing_[i] = 0;
     if (!tr.header.stamp.isZero() && tr.header.stamp == tf_last_stamp_[i]) continue;  // nothing new
     tf_last_stamp_[i] = tr.header.stamp;
     geometry_msgs::Pose p;

@@ -37,6 +37,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
       base_frames_.push_back(!P.needle_base_frame.empty() && scene_.needles.size() == 1 ? P.needle_base_frame
                                                                                           : n.name + "_base");
   tf_last_stamp_.assign(scene_.needles.size(), ros::Time(0));
+  tf_missing_.assign(scene_.needles.size(), 0);
   schedule_ = RealtimeSchedule(scene_.dt);
   load();
 

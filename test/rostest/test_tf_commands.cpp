@@ -101,6 +101,8 @@ TEST(TfCommands, BaseFollowsTheTransform) {
   std::lock_guard<std::mutex> lk(m);
   EXPECT_EQ(status.state, "running");
   EXPECT_EQ(status.clamped_commands, 0u);
+  // Before the first transform the lookups failed at every step: one outage, one rejection.
+  EXPECT_EQ(status.rejected_commands, 1u);
 }
 
 int main(int argc, char** argv) {

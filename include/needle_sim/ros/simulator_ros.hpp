@@ -146,6 +146,7 @@ class SimulatorRos {
   std::unique_ptr<tf2_ros::TransformListener> tf_listener_;
   std::vector<std::string> base_frames_;  // tf commands
   std::vector<ros::Time> tf_last_stamp_;
+  std::vector<char> tf_missing_;  // per base: no transform at the last lookup (counted once per outage)
   ros::Timer timer_, diag_timer_;
   std::vector<ros::Subscriber> command_subs_;
   ros::Publisher status_pub_, target_pub_, target_state_pub_;
