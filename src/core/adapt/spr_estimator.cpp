@@ -26,35 +26,52 @@ Stress rotate(const Mat3& R, const Stress& s) {
 // normal equations would square its condition number: on the thin patches at hanging
 // nodes the exact patch test lost two digits, more with clang); a rank-deficient one through a
 // complete orthogonal decomposition (minimum-norm fit).
-bool fitLinear(const std::vector<Vec3>& pts, const std::vector<Stress>& vals, const Vec3& x0,
-               Eigen::Matrix<double, 4, 6>& coef) {
+// The full fit as a linear map (4 x m) from the samples' values to the coefficients, by one
+// Householder QR; false when the patch is too flat or small for a 3D fit.
+bool fitMap(const std::vector<Vec3>& pts, const Vec3& x0, Eigen::Matrix<double, 4, Eigen::Dynamic>& F) {
   const int m = static_cast<int>(pts.size());
+  if (m < 4) return false;
   double scale = 0;
   for (int i = 0; i < m; ++i) scale = std::max(scale, (pts[i] - x0).norm());
   if (scale == 0) scale = 1;
   Eigen::Matrix<double, Eigen::Dynamic, 4> P(m, 4);
-  Eigen::Matrix<double, Eigen::Dynamic, 6> V(m, 6);
   for (int i = 0; i < m; ++i) {
     P(i, 0) = 1;
     P.block<1, 3>(i, 1) = ((pts[i] - x0) / scale).transpose();
-    V.row(i) = vals[i].transpose();
   }
-  bool full = false;
-  if (m >= 4) {
-    const Eigen::HouseholderQR<Eigen::Matrix<double, Eigen::Dynamic, 4>> qr(P);
-    const Eigen::Vector4d r = qr.matrixQR().topRows<4>().diagonal().cwiseAbs();
-    // |R_ii| bounds the singular values from above and below within the sample count:
-    // a ratio of 1e-6 is the normal equations' former 1e-12 on eigenvalues.
-    full = r.minCoeff() > 1e-6 * r.maxCoeff();
-    if (full) coef = qr.solve(V);
+  const Eigen::HouseholderQR<Eigen::Matrix<double, Eigen::Dynamic, 4>> qr(P);
+  const Eigen::Vector4d r = qr.matrixQR().topRows<4>().diagonal().cwiseAbs();
+  // |R_ii| bounds the singular values from above and below within the sample count:
+  // a ratio of 1e-6 is the normal equations' former 1e-12 on eigenvalues.
+  if (!(r.minCoeff() > 1e-6 * r.maxCoeff())) return false;
+  F = qr.solve(Eigen::MatrixXd::Identity(m, m));
+  F.bottomRows<3>() /= scale;
+  return true;
+}
+
+bool fitLinear(const std::vector<Vec3>& pts, const std::vector<Stress>& vals, const Vec3& x0,
+               Eigen::Matrix<double, 4, 6>& coef) {
+  const int m = static_cast<int>(pts.size());
+  Eigen::Matrix<double, 4, Eigen::Dynamic> F;
+  Eigen::Matrix<double, Eigen::Dynamic, 6> V(m, 6);
+  for (int i = 0; i < m; ++i) V.row(i) = vals[i].transpose();
+  if (fitMap(pts, x0, F)) {
+    coef = F * V;
+    return true;
   }
-  if (!full) {
-    Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> cod(P);
-    cod.setThreshold(1e-8);
-    coef = cod.solve(V);
+  double scale = 0;
+  for (int i = 0; i < m; ++i) scale = std::max(scale, (pts[i] - x0).norm());
+  if (scale == 0) scale = 1;
+  Eigen::MatrixXd P(m, 4);
+  for (int i = 0; i < m; ++i) {
+    P(i, 0) = 1;
+    P.block<1, 3>(i, 1) = ((pts[i] - x0) / scale).transpose();
   }
+  Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> cod(P);
+  cod.setThreshold(1e-8);
+  coef = cod.solve(V);
   coef.bottomRows<3>() /= scale;
-  return full;
+  return false;
 }
 
 // Shape-function gradients (natural) at the 2x2x2 Gauss points and the centroid.
@@ -91,20 +108,9 @@ SprEstimator::SprEstimator(const CorotationalHexModel& model) : model_(model) {
   for (int n = 0; n < mesh.numNodes(); ++n) {
     const int m = static_cast<int>(node_elements_[n].size());
     if (m < 4) continue;
-    // The fit of each unit vector of values: the columns of the fit's linear map.
     std::vector<Vec3> pts;
     for (int e : node_elements_[n]) pts.push_back(centroids_[e]);
-    Eigen::Matrix<double, 4, Eigen::Dynamic> F(4, m);
-    bool full = true;
-    for (int k = 0; k < m && full; ++k) {
-      std::vector<Stress> unit(m, Stress::Zero());
-      unit[k][0] = 1;
-      Eigen::Matrix<double, 4, 6> c;
-      full = fitLinear(pts, unit, mesh.node(n), c);
-      F.col(k) = c.col(0);
-    }
-    interior_[n] = full;
-    if (full) fit_[n] = std::move(F);
+    interior_[n] = fitMap(pts, mesh.node(n), fit_[n]);
   }
   const GaussTable& gt = gaussTable();
   shapes_.resize(model.numReferences());
