@@ -127,6 +127,50 @@ def phantom(a, md):
                 cov = sum(1 for e, _, b in sel if b >= abs(e))
                 md.append("| %s | %s | %s | %d | %.2f | %.2f | %.2f | %d %% |" % (
                     label, name, comp, len(sel), pct(effs, 0.5), pct(effs, 0.1), pct(effs, 0.9), 100 * cov // len(sel)))
+    plot_phantom(runs, os.path.join(a.out, "phantom_error_vs_step.png"))
+    md.append("\nFigure: `phantom_error_vs_step.png` (the norm of the true error, of the signed estimate, and the bound "
+              "against step, per target, on 8x4x4 and adaptive).")
+
+
+def plot_phantom(runs, path):
+    """Per target (a panel each) and mesh (a colour each): |Q_ref - Q_h|, |estimate| and the bound
+    against step, at the estimated steps (every 10th)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    ref = runs["32x16x16"]
+    fig, axes = plt.subplots(1, len(PHANTOM_TARGETS), figsize=(15, 4.4), sharey=True)
+    for ax, (name, _) in zip(axes, PHANTOM_TARGETS):
+        for label, color in (("8x4x4", "C0"), ("adaptive", "C1")):
+            steps, true, est, bound = [], [], [], []
+            for step, r in sorted(runs[label].items()):
+                if step % 10 or step not in ref:
+                    continue
+                try:
+                    q = [float(r["%s_qoi_%s" % (name, c)]) for c in "xyz"]
+                    qr = [float(ref[step]["%s_qoi_%s" % (name, c)]) for c in "xyz"]
+                    e = [float(r["%s_err_%s" % (name, c)]) for c in "xyz"]
+                    b = float(r["%s_err_bound" % name])
+                except (KeyError, ValueError):
+                    continue
+                if any(math.isnan(v) for v in q + qr + e + [b]):
+                    continue
+                steps.append(step)
+                true.append(1e6 * math.dist(q, qr))
+                est.append(1e6 * math.sqrt(sum(x * x for x in e)))
+                bound.append(1e6 * b)
+            ax.semilogy(steps, true, color=color, lw=1.2, label="%s: true error (vs 32x16x16)" % label)
+            ax.semilogy(steps, est, color=color, lw=0.8, ls=":", label="%s: |signed estimate|" % label)
+            ax.semilogy(steps, bound, color=color, lw=1, ls="--", label="%s: bound" % label)
+        ax.set_title("target %s" % name)
+        ax.set_xlabel("step (dt 1 ms)")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("error of the regularised displacement [um]")
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Phantom insertion: goal-oriented estimate and bound against the true error")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print("wrote", path)
 
 
 def compare_max(a, md, path):
@@ -164,7 +208,16 @@ def main():
     ap.add_argument("--tool", default=package_paths.tool())
     ap.add_argument("--phantom", action="store_true", help="also the phantom insertion part")
     ap.add_argument("--compare-max", action="store_true", help="also goal-oriented against max-rule refinement")
+    ap.add_argument("--only-phantom", action="store_true", help="the phantom insertion part alone (and its figure)")
     a = ap.parse_args()
+    if a.only_phantom:
+        md = ["# Goal-oriented target-error estimate: the phantom insertion\n",
+              "Command: `scripts/target_error_study.py --out %s --only-phantom`\n" % a.out]
+        phantom(a, md)
+        with open(os.path.join(a.out, "target_error_phantom.md"), "w") as f:
+            f.write("\n".join(md) + "\n")
+        print("\n".join(md))
+        return 0
     data = os.path.join(package_paths.share_dir(), "test", "data", "target_error")
     rows, md = [], ["# Goal-oriented target-error estimate: verification\n",
                     "Static boxes of `test/data/target_error/`, regularised point of radius %.2f mm; reference: "

@@ -41,6 +41,7 @@ BagSession readBagSession(const std::string& path, const std::string& pose_topic
     for (const auto& t : topics) query.push_back("/" + strip(t)), query.push_back(strip(t));
     rosbag::View view(bag, rosbag::TopicQuery(query));
     const ros::Time origin = view.getBeginTime();
+    s.origin = origin.toSec();
     for (const rosbag::MessageInstance& m : view) {
       const double received = (m.getTime() - origin).toSec();
       s.end = std::max(s.end, received);

@@ -14,6 +14,7 @@ struct BagSession {
   std::vector<RecordedCommand> commands;
   ForceRecord force;   // axial holder force [N, + pushes in] = -wrench.force.x; empty without a wrench topic
   double end = 0;      // last message [s]
+  double origin = 0;   // the bag's start [s since the epoch]: the times above are from here
 };
 
 // Throws InputError naming the bag and the topic: unreadable bag, an empty topic, a topic of

@@ -31,6 +31,7 @@
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
 #include "bag_input.hpp"
+#include "bag_output.hpp"
 #include "bench.hpp"
 #include "calibrate.hpp"
 #include "predict.hpp"
@@ -47,6 +48,7 @@ constexpr int kExitNumerical = 3;
 // A recorded session driving the run (run --bag).
 struct BagRun {
   std::string bag, pose_topic, wrench_topic, needle;
+  std::string out_bag, out_ns = "/needle_sim";  // run --out-bag: the outputs as a bag
   bool given() const { return !bag.empty(); }
 };
 
@@ -97,8 +99,12 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
     return kExitNumerical;
   }
   std::unique_ptr<RunRecorder> rec;
+  std::unique_ptr<BagOutput> bag_out;
   try {
     rec = std::make_unique<RunRecorder>(*sim, out_dir, options);
+    // Stamped as the recording when one drives the run, so both bags play side by side.
+    if (!bag_run.out_bag.empty())
+      bag_out = std::make_unique<BagOutput>(bag_run.out_bag, bag_run.out_ns, *sim, bag_run.given() ? session.origin : 0.0);
   } catch (const std::exception& e) {
     std::cerr << "needle_sim: " << e.what() << '\n';
     return kExitInput;
@@ -121,10 +127,13 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
         sim_t.push_back(sim->time());
         sim_force.push_back(nb.baseForce().dot(nb.trajectory().pose(sim->time()).direction));
       }
-      rec->recordStep(s, std::chrono::duration<double, std::milli>(clock::now() - t0).count());
+      const double ms = std::chrono::duration<double, std::milli>(clock::now() - t0).count();
+      rec->recordStep(s, ms);
+      if (bag_out) bag_out->record(*sim, ms);
     } catch (const NumericalError& e) {
       const double wall = std::chrono::duration<double>(clock::now() - t_start).count();
       rec->fail(wall, e.step(), e.what());
+      if (bag_out) bag_out->close();  // the steps before the failure (a failed state is never written)
       std::cerr << "needle_sim: numerical failure: " << e.what() << "\n"
                 << "needle_sim: failure report in " << rec->summaryPath() << '\n';
       return kExitNumerical;
@@ -136,6 +145,10 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   }
   const double wall = std::chrono::duration<double>(clock::now() - t_start).count();
   rec->finish(wall);
+  if (bag_out) {
+    bag_out->close();
+    std::printf("needle_sim: %ld messages written to %s\n", bag_out->messages(), bag_run.out_bag.c_str());
+  }
   if (replay) {
     const auto& g = replay->guard();
     std::printf("needle_sim: bag %s: %zu commands on %s, %ld followed, %lu rejected (", bag_run.bag.c_str(),
@@ -251,6 +264,8 @@ int main(int argc, char** argv) {
   run->add_option("--pose-topic", bag_run.pose_topic, "... on this geometry_msgs/PoseStamped topic (e.g. needle_sim/needle/command_pose)");
   run->add_option("--wrench-topic", bag_run.wrench_topic, "... and compare with the measured geometry_msgs/WrenchStamped on this topic: DIR/measured_force.csv");
   run->add_option("--needle", bag_run.needle, "... for this needle (default: the first)");
+  run->add_option("--out-bag", bag_run.out_bag, "also write the outputs as a rosbag on the node's topics (status, wrenches, targets, paths)");
+  run->add_option("--out-bag-ns", bag_run.out_ns, "... under this namespace (the node's name)")->capture_default_str();
   run->add_option("--vtu-every", rec_opts.vtu_every,
                   "a ParaView series every N steps: DIR/vtu/, DIR/tissue.pvd, DIR/needles.pvd (0: none)")
       ->check(CLI::NonNegativeNumber);

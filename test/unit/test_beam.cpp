@@ -8,6 +8,7 @@
 #include "needle_sim/needle/corotational_beam.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/needle/needle_body.hpp"
+#include "needle_sim/needle/trajectory_replan.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 using namespace needle_sim;
@@ -350,4 +351,51 @@ TEST(NeedleScenes, ShippedScenesRunAndTheBaseFollowsTheCommand) {
   Simulation sim2(two);
   sim2.step();
   EXPECT_EQ(sim2.numDofs(), 6 * 25 + 6 * 29);
+}
+
+// Intraoperative re-planning (needle/trajectory_replan.hpp): the similarity about the entry
+// point that carries the planned final tip onto the shifted target.
+TEST(TrajectoryReplan, ReaimsAStraightInsertionThroughItsEntryPoint) {
+  NeedleParameters n;
+  n.length = 0.12;
+  n.base_direction = Vec3(0.2, -0.4, -0.9).normalized();
+  n.base_position = Vec3(-0.06, 0.07, 0.17);
+  const Vec3 entry = n.base_position + n.length * n.base_direction;
+  for (double a : {0.0, 0.0872}) n.motion.push_back({a * 100, n.base_position + a * n.base_direction, n.base_direction, 0.0});
+  n.motion.push_back({10.0, n.base_position + 0.03 * n.base_direction, n.base_direction, 0.0});  // back out
+  const Vec3 planned_tip = entry + 0.03 * n.base_direction;
+  const Vec3 shift(0.001, -0.002, -0.006);
+
+  // No shift: the plan as it was.
+  const NeedleParameters same = replanned(n, replanFor(n, Vec3::Zero()));
+  for (size_t k = 0; k < n.motion.size(); ++k) EXPECT_LT((same.motion[k].position - n.motion[k].position).norm(), 1e-14);
+
+  const TrajectoryReplan r = replanFor(n, shift);
+  EXPECT_LT((r.entry - entry).norm(), 1e-14);
+  EXPECT_LT((r.planned_tip - planned_tip).norm(), 1e-14);
+  const NeedleParameters m = replanned(n, r);
+  auto tip = [&](const Vec3& base, const Vec3& dir) { return Vec3(base + m.length * dir.normalized()); };
+  // The rest pose keeps its tip at the entry point, the final tip lands on the shifted target.
+  EXPECT_LT((tip(m.base_position, m.base_direction) - entry).norm(), 1e-14);
+  EXPECT_LT((tip(m.motion.back().position, m.motion.back().direction) - (planned_tip + shift)).norm(), 1e-14);
+  // Every keyframe's tip stays on the new straight line through the entry point, at its
+  // advance times the scale, and every axis is the new line's.
+  const Vec3 axis = (planned_tip + shift - entry).normalized();
+  for (size_t k = 0; k < m.motion.size(); ++k) {
+    const double advance = (tip(n.motion[k].position, n.motion[k].direction) - entry).norm();
+    const Vec3 t = tip(m.motion[k].position, m.motion[k].direction);
+    EXPECT_LT((t - (entry + r.scale * advance * axis)).norm(), 1e-14) << k;
+    EXPECT_LT((m.motion[k].direction.normalized() - axis).norm(), 1e-14) << k;
+    EXPECT_EQ(m.motion[k].t, n.motion[k].t);
+  }
+  EXPECT_NEAR(r.scale, (planned_tip + shift - entry).norm() / (planned_tip - entry).norm(), 1e-14);
+  EXPECT_NEAR(r.angle(), std::acos((planned_tip - entry).normalized().dot(axis)), 1e-7);
+
+  // A needle with no motion keeps its plan; one that ends at its entry point cannot be re-aimed.
+  NeedleParameters still = n;
+  still.motion.clear();
+  EXPECT_EQ(replanFor(still, shift).rotation.coeffs(), Eigen::Quaterniond::Identity().coeffs());
+  NeedleParameters back = n;
+  back.motion.back().position = n.base_position;
+  EXPECT_THROW(replanFor(back, shift), std::invalid_argument);
 }

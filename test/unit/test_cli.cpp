@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -32,6 +33,25 @@ Result runTool(const std::string& args) {
   ss << in.rdbuf();
   fs::remove(errfile);
   return {WIFEXITED(raw) ? WEXITSTATUS(raw) : -1, ss.str()};
+}
+
+// A command's standard output.
+std::string capture(const std::string& cmd) {
+  std::string out;
+  if (FILE* p = ::popen(cmd.c_str(), "r")) {
+    char buf[4096];
+    for (size_t k; (k = std::fread(buf, 1, sizeof buf, p)) > 0;) out.append(buf, k);
+    ::pclose(p);
+  }
+  return out;
+}
+
+// The message count of a topic in `rosbag info --yaml` output (-1: not in the bag).
+long topicCount(const std::string& info, const std::string& topic) {
+  const size_t at = info.find("topic: " + topic + "\n");
+  if (at == std::string::npos) return -1;
+  const size_t m = info.find("messages:", at);
+  return m == std::string::npos ? -1 : std::stol(info.substr(m + 9));
 }
 
 fs::path freshDir(const std::string& name) {
@@ -64,7 +84,9 @@ TEST(Cli, BadScenesExitWithStatus2AndNameFileAndKey) {
     EXPECT_EQ(r.status, 2) << r.err;
     EXPECT_NE(r.err.find(e.path().string()), std::string::npos) << r.err;
     const std::string key = firstLine(e.path()).substr(std::string("# expect-key: ").size());
-    if (!key.empty()) EXPECT_NE(r.err.find("'" + key), std::string::npos) << r.err;
+    if (!key.empty()) {
+      EXPECT_NE(r.err.find("'" + key), std::string::npos) << r.err;
+    }
     EXPECT_FALSE(fs::exists(out / "summary.json"));
   }
 }
@@ -318,8 +340,9 @@ TEST(Cli, RunFromABagMatchesTheNodesReplay) {
   const fs::path out = freshDir("bag");
   const std::string bag = kSrc + "/test/data/bags/phantom_insertion_commands.bag";
   const std::string scene = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml";
+  const fs::path sim_bag = out / "simulated.bag";
   const Result r = runTool("run " + scene + " --quiet --out '" + out.string() + "' --bag '" + bag +
-                           "' --pose-topic needle/command_pose");
+                           "' --pose-topic needle/command_pose --out-bag '" + sim_bag.string() + "'");
   ASSERT_EQ(r.status, 0) << r.err;
   auto cols = readColumns(out / "timeseries.csv");
   ASSERT_FALSE(cols["t"].empty());
@@ -343,6 +366,25 @@ TEST(Cli, RunFromABagMatchesTheNodesReplay) {
   EXPECT_EQ(cols["needle_state"].back(), "out");
   std::ifstream in(out / "summary.json");
   EXPECT_EQ(json::parse(in)["status"], "ok");
+
+  // --out-bag: what rosbag info reads (one status and one wrench per step, paths at 30 Hz of
+  // simulated time), stamped from the recording's start, and the same holder force as the CSV.
+  const std::string info = capture("/usr/bin/python3 /usr/bin/rosbag info --yaml '" + sim_bag.string() + "'");
+  const long steps = static_cast<long>(cols["t"].size());
+  EXPECT_EQ(topicCount(info, "/needle_sim/status"), steps) << info;
+  EXPECT_EQ(topicCount(info, "/needle_sim/needle/wrench"), steps) << info;
+  const double duration = std::stod(cols["t"].back());
+  EXPECT_NEAR(topicCount(info, "/needle_sim/needle/path"), duration * 30, 2) << info;
+  EXPECT_EQ(topicCount(info, "/needle_sim/target/state"), -1) << "the phantom has no targets";
+  const std::string hold = capture(
+      "/usr/bin/python3 -c \"import rosbag; b = rosbag.Bag('" + sim_bag.string() + "'); r = rosbag.Bag('" + bag +
+      "'); t0 = r.get_start_time(); f = [m.wrench.force.x for _, m, t in b.read_messages(['/needle_sim/needle/wrench']) "
+      "if 2.35 <= m.header.stamp.to_sec() - t0 <= 2.45]; print(len(f), sum(f) / len(f))\"");
+  long held = 0;
+  double wrench = 0;
+  std::istringstream(hold) >> held >> wrench;
+  EXPECT_GT(held, 50) << hold;
+  EXPECT_NEAR(wrench, -fx / n, 1e-9 * std::abs(fx / n)) << hold;  // the wrench is the needle's force on the holder
 
   struct Case {
     std::string args, expect;

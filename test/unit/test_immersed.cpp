@@ -269,6 +269,69 @@ TEST(BrainShift, AdaptivePreStepRefinesThenScalesOnTheFinalMesh) {
   EXPECT_EQ(copy.targetPosition(0), sim.targetPosition(0));
 }
 
+// Intraoperative re-planning (brain_shift.replan): after the shift, the cannula and the
+// electrode are re-aimed through their entry point at the target's shifted position; they
+// stay coaxial, and the electrode's tip ends on the shifted target, not on the planned one.
+// (No interaction section: the needles move as commanded, so the tip is the plan's.)
+TEST(BrainShift, ReplanAimsTheNeedlesAtTheShiftedTarget) {
+  setBlasThreads(1);
+  const std::string needles = R"(
+needles:
+  - name: cannula
+    length: 0.12
+    radius: 0.003
+    inner_radius: 0.0008
+    young: 1.0e10
+    poisson: 0.3
+    density: 7900.0
+    elements: 10
+    base: {position: [-0.060446, 0.072999, 0.174282], direction: [0.238161, -0.414576, -0.878297]}
+    motion:
+      - {t: 0.0, advance: 0.0}
+      - {t: 0.4, advance: 0.0872}
+  - name: electrode
+    length: 0.13
+    radius: 0.0007
+    young: 1.0e10
+    poisson: 0.3
+    density: 7900.0
+    elements: 10
+    base: {position: [-0.062828, 0.077145, 0.183064], direction: [0.238161, -0.414576, -0.878297]}
+    motion:
+      - {t: 0.0, advance: 0.0}
+      - {t: 0.4, advance: 0.0872}
+)";
+  const std::string shift = "{gravity: [0, -9.81, 0], csf_level: {point: [0, 0, 0]}, skull: {gap: 0.004}, "
+                            "target_shift: 0.003, target: STN_L";
+  Scene planned = shiftScene(shift + "}", needles);
+  planned.duration = 0.5;
+  Scene replan = shiftScene(shift + ", replan: true}", needles);
+  replan.duration = 0.5;
+  Simulation a(planned), b(replan);
+  EXPECT_TRUE(a.replans().empty());
+  ASSERT_EQ(b.replans().size(), 2u);
+  const Vec3 shifted = b.targetStart(0);
+  ASSERT_NEAR((shifted - b.targetRest(0)).norm(), 0.003, 1e-5);
+  // Both needles' planned final tips (the pre-shift STN centroid) are re-aimed at the shifted
+  // one through their common entry point, by the same small rotation.
+  for (const TrajectoryReplan& r : b.replans()) {
+    EXPECT_LT((r.planned_tip - b.targetRest(0)).norm(), 1e-4);
+    EXPECT_LT((r.entry + r.scale * (r.rotation * (r.planned_tip - r.entry)) - (r.planned_tip + shifted - b.targetRest(0))).norm(),
+              1e-12);
+    EXPECT_GT(r.angle(), 0.01);
+  }
+  for (long k = 0; k < planned.numSteps(); ++k) {
+    a.step();
+    b.step();
+    EXPECT_LT((b.needle(0).tipDirection() - b.needle(1).tipDirection()).norm(), 1e-9) << "coaxial at step " << k;
+  }
+  const double planned_miss = (a.needle(1).tipPosition() - shifted).norm();
+  const double replanned_miss = (b.needle(1).tipPosition() - shifted).norm();
+  EXPECT_GT(planned_miss, 0.002);  // the planned trajectory ends where the STN was
+  EXPECT_LT(replanned_miss, 2e-4);  // the re-planned one where it is (the beam's tip lags the command a little)
+  EXPECT_LT((a.needle(1).tipPosition() - a.targetRest(0)).norm(), 2e-4);
+}
+
 namespace {
 // A unit block on a 2 x 2 x 2 grid clamped on its face x = 0.
 Scene clampedBlock(const std::string& solver) {

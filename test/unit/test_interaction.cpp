@@ -77,6 +77,79 @@ TEST(Interaction, BelowPunctureForceIndentsAndComesBack) {
   EXPECT_LT(sim.probeDisplacement(0).norm(), 1e-3 * max_push);
 }
 
+// Before the puncture the holder feels the tissue's deformation: the contact force against the
+// indentation of the tissue's contact point follows the stiffness the mesh gives to a point
+// load there (1 / its static compliance, computed on a copy of the tissue at rest). On two
+// meshes, whose stiffnesses differ, the force profile follows each one's.
+TEST(Interaction, ForceBeforePunctureFollowsTheMeshStiffness) {
+  std::vector<double> stiffness;
+  for (const char* cells : {"[8,4,4]", "[16,8,8]"}) {
+    SCOPED_TRACE(cells);
+    // The tip 3 mm in front of the surface: 2.9 mm quickly, then 0.2 mm/s (quasi-static:
+    // the tissue's inertia and damping are below 0.5 % of its elastic force); never punctures.
+    Simulation sim(phantom({"interaction.puncture_force=100", std::string("tissue.grid.cells=") + cells,
+                            "needle.motion=[{t: 0, advance: 0}, {t: 0.5, advance: 0.0029}, {t: 1.5, advance: 0.0031}]",
+                            "time.duration=1.5"}));
+    const TissueBody rest = sim.tissue();
+    const ContactConstraint* c = nullptr;
+    std::vector<double> force, indentation;
+    for (long k = 0; k < sim.scene().numSteps(); ++k) {
+      sim.step();
+      ASSERT_NE(sim.interaction()->state(0), InsertionState::Punctured);
+      if (!(c = find(sim, ConstraintKind::Puncture))) continue;
+      const Vec3 n = c->frame.col(0);  // outward normal; the tissue is pushed along -n
+      const Vec3 u = c->tissue.interpolate(sim.tissue().mesh(), sim.tissue().displacements());
+      force.push_back(c->lambda[0]);
+      indentation.push_back(-n.dot(u));
+    }
+    ASSERT_GT(force.size(), 200u);
+    ASSERT_GT(force.back(), 0.1);
+    // The mesh's stiffness at that material point: a unit load into the tissue, static.
+    TissueBody t = rest;
+    const Vec3 n = c->frame.col(0);
+    VecX f = VecX::Zero(t.mesh().numNodes() * 3);
+    for (int a = 0; a < 8; ++a) f.segment<3>(3 * t.mesh().element(c->tissue.element)[a]) -= c->tissue.weights[a] * n;
+    t.addExternalForce(f);
+    t.solveStatic();
+    const double compliance = -n.dot(c->tissue.interpolate(t.mesh(), t.displacements()));
+    ASSERT_GT(compliance, 0);
+    // The slope of force against indentation over the second half of the contact.
+    double fd = 0, dd = 0;
+    for (size_t i = force.size() / 2; i < force.size(); ++i) fd += force[i] * indentation[i], dd += indentation[i] * indentation[i];
+    const double slope = fd / dd;
+    std::printf("  %s: contact force %.3f N at %.3g m of indentation; slope %.5g N/m, mesh stiffness %.5g N/m\n", cells,
+                force.back(), indentation.back(), slope, 1 / compliance);
+    EXPECT_NEAR(slope * compliance, 1.0, 0.01);
+    stiffness.push_back(1 / compliance);
+  }
+  EXPECT_GT(std::abs(stiffness[0] / stiffness[1] - 1), 0.05) << "the two meshes must differ for the check to mean anything";
+}
+
+// A puncture strength 100 times the needle's Euler load (the stability sweep's 10 N case):
+// the needle buckles, its tip slides along the face it touched, off the edge and onto the
+// next face, and never enters the tissue without a puncture. (Before, the contact was
+// released at the edge or when the force vanished, and the straightening needle's tip
+// swept into the block unnoticed.)
+TEST(Interaction, ABuckledTipSlidesOnTheSurfaceAndNeverPassesThroughIt) {
+  Simulation sim(phantom({"interaction.puncture_force=10", "interaction.cutting_force=10",
+                          "needle.motion=[{t: 0, advance: 0}, {t: 1.3, advance: 0.013}]", "time.duration=1.6"}));
+  double deepest = 0, umax = 0, lateral = 0;
+  for (long k = 0; k < sim.scene().numSteps(); ++k) {
+    sim.step();
+    const auto s = sim.interaction()->state(0);
+    ASSERT_NE(s, InsertionState::Punctured) << k;
+    ASSERT_NE(s, InsertionState::Inserted) << k;
+    const Vec3 tip = sim.needle(0).tipPosition();
+    // Depth inside the block at rest (0..40 x 0..20 x 0..20 mm): the smallest distance to a face.
+    const double depth = std::min({tip.x(), 0.04 - tip.x(), tip.y(), 0.02 - tip.y(), tip.z(), 0.02 - tip.z()});
+    deepest = std::max(deepest, depth);
+    umax = std::max(umax, sim.tissue().displacements().lpNorm<Eigen::Infinity>());
+    lateral = std::max(lateral, std::hypot(tip.y() - 0.01, tip.z() - 0.01));
+  }
+  EXPECT_GT(lateral, 0.01);  // it buckled off the axis, past the face's edge
+  EXPECT_LT(deepest, umax + 1e-4) << "the tip entered the tissue unpunctured";
+}
+
 // Above the strength: puncture, at a force equal to the threshold within one step's increase.
 TEST(Interaction, PunctureHappensAtTheThreshold) {
   Simulation sim(phantom({"time.duration=0.5"}));

@@ -23,6 +23,9 @@ struct BrainShiftSettings {
   bool skull_support = true;            // the skull keeps holding the brain during the insertion
   std::optional<double> target_shift;   // scale the load so that `target` moves this far [m]
   std::string target;                   // default: the first target
+  // Intraoperative re-planning: after the shift every needle's trajectory is re-aimed at
+  // the target's shifted position through its entry point (needle/trajectory_replan.hpp).
+  bool replan = false;
   int load_steps = 4;
   double tolerance = 1e-6;              // relative Newton residual per load step
 };

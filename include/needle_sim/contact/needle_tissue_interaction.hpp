@@ -92,7 +92,12 @@ class NeedleTissueInteraction {
   bool locateCurrent(const Vec3& p, int hint, EmbeddedPoint& out) const;
   // Appends to `out` (not to constraints_, which the caller may be iterating).
   void layShaftPoints(int n, const EmbeddedPoint& upto, std::vector<std::unique_ptr<ContactConstraint>>& out);
-  void updateGeometry();
+  // Frames, gaps and arc lengths of the points at the current positions; drops points the
+  // needle has left. True when a tip lost its surface contact (slid off an edge).
+  bool updateGeometry();
+  // Contact detection for needle n if it is out of the tissue: a puncture point where its tip
+  // meets the surface in this step (h).
+  void detect(int n, double h);
   double grip(int n) const;  // shaft points' grip force on needle n [N]
   void bindTissue(TissueBody& tissue, const EmbeddedSurface* organ);
 

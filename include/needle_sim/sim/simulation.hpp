@@ -20,6 +20,7 @@
 #include "needle_sim/brain/brain_shift.hpp"
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/needle/needle_body.hpp"
+#include "needle_sim/needle/trajectory_replan.hpp"
 #include "needle_sim/tissue/tissue_body.hpp"
 
 namespace needle_sim {
@@ -130,6 +131,9 @@ class Simulation {
   const EmbeddedSurface* organSurface() const { return organ_.get(); }
   // The brain-shift pre-step's outcome (done == false without a brain_shift section).
   const BrainShiftResult& brainShift() const { return shift_result_; }
+  // The needles' trajectories re-aimed after the shift (brain_shift.replan), one per needle
+  // in order; empty without re-planning.
+  const std::vector<TrajectoryReplan>& replans() const { return replans_; }
 
  private:
   void checkState() const;
@@ -144,6 +148,8 @@ class Simulation {
   void rebuildTissue(bool persistent_loads = true);
   // The brain-shift pre-step, with its solve/adapt passes on an adaptive mesh.
   void preStep();
+  // Re-aims every needle at the brain-shift target's shifted position (brain_shift.replan).
+  void replanNeedles();
   static constexpr int kMaxShiftPasses = 6;
   // The skull support springs of the brain shift on the current mesh.
   void applySupport();
@@ -179,6 +185,7 @@ class Simulation {
   std::unique_ptr<EmbeddedSurface> organ_;
   std::unique_ptr<BrainShift> shift_;
   BrainShiftResult shift_result_;
+  std::vector<TrajectoryReplan> replans_;
   VecX reference_;  // the shifted state (current mesh): the estimate's reference, or empty
   std::unique_ptr<MeshAdaptation> adaptation_;
   mutable std::unique_ptr<SprEstimator> estimator_;  // bound to the current tissue body

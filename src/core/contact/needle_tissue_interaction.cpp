@@ -158,7 +158,8 @@ void NeedleTissueInteraction::layShaftPoints(int n, const EmbeddedPoint& upto,
   }
 }
 
-void NeedleTissueInteraction::updateGeometry() {
+bool NeedleTissueInteraction::updateGeometry() {
+  bool lost = false;
   const HexMesh& mesh = tissue_->mesh();
   const VecX& x = tissue_->positions();
   std::vector<std::unique_ptr<ContactConstraint>> kept;
@@ -193,10 +194,20 @@ void NeedleTissueInteraction::updateGeometry() {
       const Vec3 p = nd.state().p[tip];
       const Vec3 axis = (p - nd.state().p[tip - 1]).normalized();
       const double r = 0.5 * settings_.shaft_spacing + std::abs(c->gap[0]);
+      // Along the axis; for a tilted or buckled tip whose axis misses the surface nearby,
+      // along the contact normal through the tip (the surface point under a sliding tip).
+      const Vec3 n = c->frame.col(0);
       SurfaceHit hit;
-      if (surface_->firstEntry(x, p - axis * r, p + axis * r, hit)) {
+      if (surface_->firstEntry(x, p - axis * r, p + axis * r, hit) || surface_->firstEntry(x, p + n * r, p - n * r, hit)) {
         c->tissue = hit.material;
         c->frame = frameFrom(hit.normal);
+      } else {
+        // No surface under the tip: it slid off an edge. The contact is lost, and detection
+        // looks for the surface again.
+        Track& tr = tracks_[c->needle];
+        tr.state = tr.has_path ? InsertionState::Out : InsertionState::Approaching;
+        lost = true;
+        continue;
       }
     }
     const Vec3 pT = c->tissue.interpolate(mesh, x);
@@ -206,35 +217,48 @@ void NeedleTissueInteraction::updateGeometry() {
     kept.push_back(std::move(c));
   }
   constraints_ = std::move(kept);
+  return lost;
+}
+
+void NeedleTissueInteraction::detect(int n, double h) {
+  Track& tr = tracks_[n];
+  if (tr.state != InsertionState::Approaching && tr.state != InsertionState::Out) return;
+  if (tr.sheathed) return;  // inside another needle: it meets no tissue
+  const VecX& xT = tissue_->positions();
+  const NeedleBody& nd = *needles_[n];
+  const int tip = nd.beam().numNodes() - 1;
+  const Vec3 p = nd.state().p[tip];
+  const Vec3 v = nd.velocities().segment<3>(6 * tip) + nd.velocityChange().segment<3>(6 * tip);
+  const Vec3 axis = (p - nd.state().p[tip - 1]).normalized();
+  const double reach = h * v.norm() + 1e-9;
+  SurfaceHit hit;
+  // Along the axis around the tip when it moves forward, and along the tip's own path over
+  // the step: a bent or buckled needle whose tip sweeps sideways into the surface, even
+  // backwards along its axis as it straightens, meets it too (a path that leaves the tissue
+  // enters nothing).
+  const bool axial = v.dot(axis) > 0 && surface_->firstEntry(xT, p - axis * reach, p + axis * (reach + h * v.dot(axis)), hit);
+  if (!axial && !(v.squaredNorm() > 0 && surface_->firstEntry(xT, p - v * h, p + v * (2 * h), hit))) return;
+  auto c = std::make_unique<PunctureConstraint>(settings_.friction);
+  c->tissue = hit.material;
+  c->needle = n;
+  c->frame = frameFrom(hit.normal);
+  constraints_.push_back(std::move(c));
+  tr.state = InsertionState::InContact;
 }
 
 InteractionStats NeedleTissueInteraction::solve(double h) {
   const auto t0 = steadyNow();
   InteractionStats st;
-  const VecX& xT = tissue_->positions();
 
-  // 1. Contact detection for needles not in the tissue.
-  for (size_t n = 0; n < needles_.size(); ++n) {
-    Track& tr = tracks_[n];
-    if (tr.state != InsertionState::Approaching && tr.state != InsertionState::Out) continue;
-    if (tr.sheathed) continue;  // inside another needle: it meets no tissue
-    const NeedleBody& nd = *needles_[n];
-    const int tip = nd.beam().numNodes() - 1;
-    const Vec3 p = nd.state().p[tip];
-    const Vec3 v = nd.velocities().segment<3>(6 * tip) + nd.velocityChange().segment<3>(6 * tip);
-    const Vec3 axis = (p - nd.state().p[tip - 1]).normalized();
-    if (v.dot(axis) <= 0) continue;  // only a needle moving forward can meet the surface
-    const double reach = h * v.norm() + 1e-9;
-    SurfaceHit hit;
-    if (!surface_->firstEntry(xT, p - axis * reach, p + axis * (reach + std::max(0.0, h * v.dot(axis))), hit)) continue;
-    auto c = std::make_unique<PunctureConstraint>(settings_.friction);
-    c->tissue = hit.material;
-    c->needle = static_cast<int>(n);
-    c->frame = frameFrom(hit.normal);
-    constraints_.push_back(std::move(c));
-    tr.state = InsertionState::InContact;
+  // 1. Contact detection for needles not in the tissue; a tip that slid off the surface it
+  //    touched (its point lost in updateGeometry) is looked for again at once, so that it
+  //    meets the next face in this very step.
+  for (size_t n = 0; n < needles_.size(); ++n) detect(static_cast<int>(n), h);
+  if (updateGeometry()) {
+    const size_t before = constraints_.size();
+    for (size_t n = 0; n < needles_.size(); ++n) detect(static_cast<int>(n), h);
+    if (constraints_.size() > before) updateGeometry();
   }
-  updateGeometry();
   st.points = static_cast<int>(constraints_.size());
   if (constraints_.empty()) {
     st.ms = msSince(t0);
@@ -305,7 +329,10 @@ void NeedleTissueInteraction::afterCommit() {
         it = constraints_.erase(it);
         continue;
       }
-      if (c.lambda[0] <= 0 && gap > 0) {  // lifted off
+      // Lifted off: no force, and the tip farther from the surface than its own radius. Nearer,
+      // the point stays (the unilateral law lets it separate): a surface springing back after
+      // an indentation, or a buckled tip sliding on it, is still met instead of being passed.
+      if (c.lambda[0] <= 0 && gap > nd.beam().section().outer_radius) {
         tr.state = tr.has_path ? InsertionState::Out : InsertionState::Approaching;
         it = constraints_.erase(it);
         continue;

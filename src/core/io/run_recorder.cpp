@@ -415,6 +415,16 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
       j["brain_shift"]["target_displacement"] = arr(bs.target_displacement);
       j["brain_shift"]["target_shift"] = bs.target_displacement.norm();
     }
+    // The re-aimed trajectories (brain_shift.replan): entry, planned and new final tip.
+    for (size_t n = 0; n < sim_.replans().size(); ++n) {
+      const TrajectoryReplan& r = sim_.replans()[n];
+      j["brain_shift"]["replanned"][sim_.scene().needles[n].name] = {
+          {"entry", arr(r.entry)},
+          {"planned_tip", arr(r.planned_tip)},
+          {"replanned_tip", arr(r.entry + r.scale * (r.rotation * (r.planned_tip - r.entry)))},
+          {"angle_rad", r.angle()},
+          {"advance_scale", r.scale}};
+    }
   }
   const fs::path tmp = fs::path(dir_) / "summary.json.tmp";
   {

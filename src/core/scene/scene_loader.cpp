@@ -454,7 +454,7 @@ void readTargets(const SceneReader& r, const YAML::Node& n, Scene& s) {
 
 void readBrainShift(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "brain_shift";
-  r.checkKeys(n, p, {"gravity", "csf_level", "density", "skull", "target_shift", "target", "load_steps", "tolerance"});
+  r.checkKeys(n, p, {"gravity", "csf_level", "density", "skull", "target_shift", "target", "replan", "load_steps", "tolerance"});
   BrainShiftSettings b;
   if (auto v = r.child(n, p, "gravity", false)) b.gravity = r.vec3(v, p + ".gravity");
   if (!(b.gravity.norm() > 0)) r.fail(p + ".gravity", "must be a non-zero vector");
@@ -488,8 +488,17 @@ void readBrainShift(const SceneReader& r, const YAML::Node& n, Scene& s) {
   }
   if (n["target_shift"]) b.target_shift = r.positive(n, p, "target_shift");
   if (auto v = r.child(n, p, "target", false)) b.target = r.string(v, p + ".target");
-  if (b.target_shift || !b.target.empty()) {
-    if (s.targets.empty()) r.fail(p + (b.target.empty() ? ".target_shift" : ".target"), "needs a target (the scene has none)");
+  if (auto v = r.child(n, p, "replan", false)) {
+    try {
+      b.replan = v.as<bool>();
+    } catch (const YAML::Exception&) {
+      r.fail(p + ".replan", "must be true or false");
+    }
+    if (b.replan && s.needles.empty()) r.fail(p + ".replan", "re-aims the needles: the scene has none");
+  }
+  if (b.target_shift || !b.target.empty() || b.replan) {
+    if (s.targets.empty())
+      r.fail(p + (b.replan ? ".replan" : b.target.empty() ? ".target_shift" : ".target"), "needs a target (the scene has none)");
     if (b.target.empty()) b.target = s.targets.front().name;
     bool found = false;
     for (const auto& t : s.targets) found = found || t.name == b.target;

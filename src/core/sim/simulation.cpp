@@ -77,7 +77,31 @@ Simulation::Simulation(const Scene& scene, const Options& options) : scene_(scen
     interaction_ = std::make_unique<NeedleTissueInteraction>(*scene.interaction, *tissue_, nd, organ_.get());
   }
   if (scene.brain_shift) preStep();
+  if (scene.brain_shift && scene.brain_shift->replan) replanNeedles();
   for (int i = 0; i < numTargets(); ++i) target_start_.push_back(targetPosition(i));
+}
+
+void Simulation::replanNeedles() {
+  const int t = findTarget(scene_.brain_shift->target);
+  const Vec3 shift = targetPosition(t) - targets_[t].planned;
+  replans_.clear();
+  for (size_t n = 0; n < needles_.size(); ++n) {
+    const NeedleParameters& planned = scene_.needles[n];
+    TrajectoryReplan r;
+    try {
+      r = replanFor(planned, shift);
+    } catch (const std::invalid_argument& e) {
+      throw InputError(scene_.file, "brain_shift.replan", e.what());
+    }
+    replans_.push_back(r);
+    // Still at rest and out of the tissue: a body on the new plan replaces the old one.
+    needles_[n] = std::make_unique<NeedleBody>(replanned(planned, r), scene_.solver);
+  }
+  if (interaction_) {
+    std::vector<NeedleBody*> nd;
+    for (auto& n : needles_) nd.push_back(n.get());
+    interaction_ = std::make_unique<NeedleTissueInteraction>(*scene_.interaction, *tissue_, nd, organ_.get());
+  }
 }
 
 Simulation::Simulation(const Simulation& o)
@@ -89,6 +113,7 @@ Simulation::Simulation(const Simulation& o)
       immersed_(o.immersed_),
       cell_fraction_(o.cell_fraction_),
       shift_result_(o.shift_result_),
+      replans_(o.replans_),
       reference_(o.reference_),
       estimate_(o.estimate_),
       estimate_step_(-1),
