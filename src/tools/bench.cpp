@@ -7,6 +7,7 @@
 #include <iomanip>
 #include <nlohmann/json.hpp>
 #include <regex>
+#include <thread>
 
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/core/stopwatch.hpp"
@@ -155,15 +156,25 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
     throw InputError(o.scene, "--target-error-every", "the scene has no target (add one with --target X Y Z)");
   const long steps = o.steps > 0 ? o.steps : scene.numSteps();
   std::vector<double> total, est, mark, rebuild, pass_share, goal, copy_ms, dual_it;
+  struct Slow {
+    double ms;
+    long step;
+    StepStats s;
+  };
+  std::vector<Slow> slow;
   double sum_goal = 0;
   std::vector<double> dofs;
   double sum_total = 0, sum_adapt = 0;
   int passes = 0, changes = 0;
   const auto w0 = steadyNow();
   for (long k = 0; k < steps; ++k) {
+    if (o.pace)
+      std::this_thread::sleep_until(w0 + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                             std::chrono::duration<double>(k * sim.dt())));
     const auto t0 = steadyNow();
     const StepStats s = sim.step();
     const double ms = msSince(t0);
+    if (o.slowest > 0) slow.push_back({ms, sim.stepIndex(), s});
     total.push_back(ms);
     dofs.push_back(sim.numDofs());
     sum_total += ms;
@@ -184,27 +195,54 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
       goal.push_back(gms);
       sum_goal += gms;
     }
+    // A mesh change is counted at the step the simulation moves to the new mesh (with a
+    // deferred change, adaptivity.rebuild_lag steps after the pass that decided it).
+    if (s.mesh_changed) {
+      ++changes;
+      rebuild.push_back(s.rebuild_ms);
+    }
     if (s.adapted) {
       ++passes;
-      changes += s.mesh_changed;
       est.push_back(s.estimate_ms);
       mark.push_back(s.mark_refine_ms);
-      if (s.mesh_changed) rebuild.push_back(s.rebuild_ms);
     }
   }
   const double wall = std::chrono::duration<double>(steadyNow() - w0).count();
   const Percentiles pt = percentiles(total), pd = percentiles(dofs), pe = percentiles(est), pm = percentiles(mark),
                     pr = percentiles(rebuild), pg = percentiles(goal), pc = percentiles(copy_ms),
                     pi = percentiles(dual_it);
-  long misses = 0;
-  for (double ms : total) misses += ms > 1e3 * sim.dt();
-  std::printf("needle_sim bench: %s, %ld steps (times in ms)\n", o.scene.c_str(), steps);
+  long misses = 0, run = 0, longest = 0;
+  for (double ms : total) {
+    const bool miss = ms > 1e3 * sim.dt();
+    misses += miss;
+    run = miss ? run + 1 : 0;
+    longest = std::max(longest, run);
+  }
+  std::printf("needle_sim bench: %s, %ld steps%s (times in ms)\n", o.scene.c_str(), steps, o.pace ? ", paced at dt" : "");
   std::printf("| scene | wall s | DOFs median | DOFs max | step median | step p99 | step p99.9 | step max | steps > dt | "
-              "adapt passes | mesh changes | estimate median | mark+refine median | rebuild median | adaptivity share |\n");
-  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
-  std::printf("| %s | %.2f | %.0f | %.0f | %.3f | %.3f | %.3f | %.1f | %ld | %d | %d | %.3f | %.3f | %.3f | %.1f %% |\n",
-              scene.name.c_str(), wall, pd.median, pd.max, pt.median, pt.p99, pt.p999, pt.max, misses, passes, changes,
-              pe.median, pm.median, pr.median, 100 * sum_adapt / std::max(sum_total, 1e-300));
+              "longest run > dt | adapt passes | mesh changes | estimate median | mark+refine median | rebuild median | "
+              "adaptivity share |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+  std::printf("| %s | %.2f | %.0f | %.0f | %.3f | %.3f | %.3f | %.1f | %ld | %ld | %d | %d | %.3f | %.3f | %.3f | %.1f %% |\n",
+              scene.name.c_str(), wall, pd.median, pd.max, pt.median, pt.p99, pt.p999, pt.max, misses, longest, passes,
+              changes, pe.median, pm.median, pr.median, 100 * sum_adapt / std::max(sum_total, 1e-300));
+  std::printf("p99.9 / median %.1f, max / median %.1f; deferred mesh changes %ld, switches that waited %ld\n",
+              pt.p999 / pt.median, pt.max / pt.median, sim.deferredRebuilds(), sim.rebuildWaits());
+  if (o.slowest > 0) {
+    // Where the worst steps' time went (the phases of StepStats; factor includes the needles').
+    std::sort(slow.begin(), slow.end(), [](const Slow& a, const Slow& b) { return a.ms > b.ms; });
+    std::printf("| slowest steps: step | ms | forces | assemble | factor (on the step / swapped in) | solve (waits) | CG it | "
+                "constraints (points) | estimate | mark+refine | rebuild | mesh changed |\n"
+                "|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    for (size_t i = 0; i < slow.size() && i < static_cast<size_t>(o.slowest); ++i) {
+      const StepStats& s = slow[i].s;
+      std::printf("| %ld | %.3f | %.3f | %.3f | %.3f (%d / %d) | %.3f (%.3f) | %d | %.3f (%d) | %.3f | %.3f | %.3f | %s |\n",
+                  slow[i].step, slow[i].ms, s.forces_ms, s.assemble_ms, s.factor_ms, s.factorizations,
+                  s.async_factorizations, s.solve_ms, s.factor_wait_ms, s.linear_iterations,
+                  s.constraint_ms, s.constraint_points, s.estimate_ms, s.mark_refine_ms, s.rebuild_ms,
+                  s.mesh_changed ? "yes" : "");
+    }
+  }
   if (!goal.empty())
     std::printf("goal-oriented target estimate: %zu passes (every %d steps), median %.3f ms, max %.3f ms, %.1f %% of the "
                 "run (steps + estimates); dual CG iterations median %.0f, max %.0f\n",
@@ -220,7 +258,10 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
                         {"wall_s", wall},
                         {"dofs", {{"median", pd.median}, {"max", pd.max}}},
                         {"step_ms", {{"median", pt.median}, {"p95", pt.p95}, {"p99", pt.p99}, {"p999", pt.p999},
-                                     {"max", pt.max}, {"deadline_misses", misses}}},
+                                     {"max", pt.max}, {"deadline_misses", misses}, {"longest_miss_run", longest}}},
+                        {"paced", o.pace},
+                        {"deferred_mesh_changes", sim.deferredRebuilds()},
+                        {"rebuild_waits", sim.rebuildWaits()},
                         {"target_error_ms", {{"passes", goal.size()}, {"median", pg.median}, {"max", pg.max},
                                              {"share", sum_goal / std::max(sum_total + sum_goal, 1e-300)},
                                              {"copy_median", pc.median}, {"copy_max", pc.max},

@@ -287,6 +287,8 @@ int main(int argc, char** argv) {
   bench->add_option("--target-error-every", bench_opts.target_error_every,
                     "adaptive scenes: time the goal-oriented target estimate every N steps as its own phase");
   bench->add_option("--target", bench_opts.target, "add a target at this planning position: x y z [m]")->expected(3);
+  bench->add_flag("--pace", bench_opts.pace, "adaptive scenes: start step k at k dt (a real-time loop), not back to back");
+  bench->add_option("--slowest", bench_opts.slowest, "adaptive scenes: also list the N slowest steps and their phases");
 
   PredictOptions pred;
   auto* predict = app.add_subcommand("predict", "predict a straight insertion on a copy of a running scene, timed");

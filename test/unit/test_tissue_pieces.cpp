@@ -93,7 +93,7 @@ TEST(ComplianceCache, ColumnsAreThoseOfTheInverseAndStaleOnesRefreshAFewAtATime)
   ComplianceCache cache;
   std::vector<int> dofs;
   for (int i = 0; i < 20; ++i) dofs.push_back(2 * i);
-  cache.prepare(dofs, chol, n);
+  cache.prepare(dofs, chol, chol.factorizations(), n);
   Eigen::MatrixXd full = Eigen::MatrixXd(A);
   full = full.selfadjointView<Eigen::Upper>();
   for (int f : dofs) {
@@ -104,11 +104,11 @@ TEST(ComplianceCache, ColumnsAreThoseOfTheInverseAndStaleOnesRefreshAFewAtATime)
   // After a refactorisation, one prepare refreshes at most kRefresh stale columns (the
   // oldest first), not all twenty.
   ASSERT_TRUE(chol.factorize(A));
-  cache.prepare(dofs, chol, n);
+  cache.prepare(dofs, chol, chol.factorizations(), n);
   int fresh = 0;
   for (int f : dofs) fresh += cache.version(f) == 2;
   EXPECT_EQ(fresh, ComplianceCache::kRefresh);
-  for (int k = 0; k < 3; ++k) cache.prepare(dofs, chol, n);
+  for (int k = 0; k < 3; ++k) cache.prepare(dofs, chol, chol.factorizations(), n);
   fresh = 0;
   for (int f : dofs) fresh += cache.version(f) == 2;
   EXPECT_EQ(fresh, 20);

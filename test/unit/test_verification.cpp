@@ -3,6 +3,8 @@
 // the static solution. Scenes are the shipped files, so these tests also guard them.
 #include <gtest/gtest.h>
 
+#include "needle_sim/solver/system_solver.hpp"
+
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
@@ -138,6 +140,59 @@ TEST(PhantomDynamics, PcgTrajectoryEqualsDirectTrajectory) {
   EXPECT_LT(diff, 1e-6 * scale);
   EXPECT_EQ(f_direct, 30);
   EXPECT_LT(f_pcg, 30);
+}
+
+// The factor refreshed on a background thread (solver.linear.async) gives the synchronous
+// trajectory within the solver tolerance; with a fixed lag the same one bit for bit whether
+// the factor is on time or late (then only the step that swaps it in waits); swapped in as
+// soon as it is ready, a late factor changes only the iteration counts.
+TEST(PhantomDynamics, AsyncFactorRefreshGivesTheSynchronousTrajectory) {
+  struct Run {
+    std::vector<Vec3> probes;
+    long sync_factorizations = 0, async_factorizations = 0, waits = 0, iterations = 0;
+  };
+  auto run = [&](bool async, int lag, double delay_ms) {
+    SystemSolver::setRefreshDelayForTesting(delay_ms);
+    Simulation sim(loadScene(scenePath("phantom_8x4x4.yaml"),
+                             {"time.duration=0.1", "tissue.gravity=[0,0,-9810]",
+                              std::string("solver.linear.async=") + (async ? "true" : "false"),
+                              "solver.linear.async_lag=" + std::to_string(lag), "solver.linear.refresh_iterations=3"}));
+    Run r;
+    for (long k = 0; k < sim.scene().numSteps(); ++k) {
+      const StepStats& s = sim.step();
+      r.sync_factorizations += s.factorizations;
+      r.async_factorizations += s.async_factorizations;
+      r.waits += s.factor_waits;
+      r.iterations += s.linear_iterations;
+      for (int i = 0; i < sim.numProbes(); ++i) r.probes.push_back(sim.probeDisplacement(i));
+    }
+    SystemSolver::setRefreshDelayForTesting(0);
+    return r;
+  };
+  auto diff = [](const Run& a, const Run& b) {
+    double d = 0, scale = 0;
+    for (size_t i = 0; i < a.probes.size(); ++i) {
+      d = std::max(d, (a.probes[i] - b.probes[i]).norm());
+      scale = std::max(scale, b.probes[i].norm());
+    }
+    return d / scale;
+  };
+  const Run sync = run(false, 4, 0), lag = run(true, 4, 0), late = run(true, 4, 20), ready = run(true, 0, 20);
+  ASSERT_GT(sync.sync_factorizations, 3);  // refreshes happen in this swing
+  EXPECT_EQ(sync.async_factorizations, 0);
+  // Async: only the first factor on the stepping thread, the refreshes in the background.
+  EXPECT_EQ(lag.sync_factorizations, 1);
+  EXPECT_GT(lag.async_factorizations, 3);
+  EXPECT_LT(diff(lag, sync), 1e-6);
+  // A late factor with a fixed lag: the same trajectory, bit for bit; the swaps waited.
+  EXPECT_EQ(diff(late, lag), 0.0);
+  EXPECT_EQ(late.async_factorizations, lag.async_factorizations);
+  EXPECT_GT(late.waits, 0);
+  // As soon as ready: no wait, more CG iterations on the older factor, the same answers.
+  EXPECT_EQ(ready.sync_factorizations, 1);
+  EXPECT_EQ(ready.waits, 0);
+  EXPECT_GT(ready.iterations, lag.iterations);
+  EXPECT_LT(diff(ready, sync), 1e-6);
 }
 
 namespace {

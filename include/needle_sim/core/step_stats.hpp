@@ -12,7 +12,10 @@ struct StepStats {
   double factor_ms = 0;    // numeric factorisation
   double solve_ms = 0;     // CG iterations (or the direct solve)
   int linear_iterations = 0;
-  int factorizations = 0;
+  int factorizations = 0;        // on the stepping thread
+  int async_factorizations = 0;  // background refreshes swapped in this step
+  int factor_waits = 0;          // ... of which the step had to wait for
+  double factor_wait_ms = 0;     // time waited (part of solve_ms)
   double linear_residual = 0;
   int newton_iterations = 0;     // static mode
   double newton_residual = 0;    // static mode, relative
@@ -36,6 +39,9 @@ struct StepStats {
     solve_ms += s.solve_ms;
     linear_iterations += s.linear_iterations;
     factorizations += s.factorizations;
+    async_factorizations += s.async_factorizations;
+    factor_waits += s.factor_waits;
+    factor_wait_ms += s.factor_wait_ms;
     linear_residual = std::max(linear_residual, s.linear_residual);
     newton_iterations += s.newton_iterations;
     newton_residual = std::max(newton_residual, s.newton_residual);

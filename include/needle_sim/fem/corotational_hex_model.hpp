@@ -57,7 +57,10 @@ class CorotationalHexModel {
   // out += s * K v, with K = sum_e R K0 R^T (matrix-free).
   void addStiffnessProduct(const VecX& v, double s, VecX& out) const;
   // Rotated element stiffness R K0 R^T of element e.
-  void elementStiffness(int e, hex8::Mat24& Ke) const;
+  void elementStiffness(int e, hex8::Mat24& Ke) const { elementStiffness(e, rot_[e], Ke); }
+  // The same with a given rotation (reads the element's reference only: another thread may
+  // assemble from rotations captured earlier).
+  void elementStiffness(int e, const Mat3& R, hex8::Mat24& Ke) const;
   // Elastic energy 1/2 sum_e u_e^T K0 u_e in the corotated frames.
   double elasticEnergy(const VecX& x) const;
 

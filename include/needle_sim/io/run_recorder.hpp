@@ -81,6 +81,8 @@ class RunRecorder {
   Observables obs_;
   std::vector<double> step_ms_, forces_ms_, assemble_ms_, factor_ms_, solve_ms_;
   long linear_iterations_ = 0, factorizations_ = 0, newton_iterations_ = 0;
+  long async_factorizations_ = 0, factor_waits_ = 0;
+  double factor_wait_ms_max_ = 0;
   int max_linear_iterations_ = 0;
   double max_linear_residual_ = 0;
   long constraint_iterations_ = 0;

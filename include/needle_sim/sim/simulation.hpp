@@ -5,6 +5,7 @@
 // prediction, targets added by set_target) is the simulation's own state. The
 // command-line tool and the ROS node are thin drivers around this class; what they report
 // comes from observables.hpp.
+#include <future>
 #include <memory>
 #include <string>
 #include <unordered_map>
@@ -45,6 +46,7 @@ class Simulation {
   // (predictInsertion) runs on one.
   Simulation(const Simulation& other);
   Simulation& operator=(const Simulation&) = delete;
+  ~Simulation();
 
   // Steps with dt from now on (a prediction may step coarser than the live run). The
   // adaptation keeps its period in steps, counted from now (its share of the cost stays
@@ -78,8 +80,19 @@ class Simulation {
 
   // Adaptivity (nullptr without an `adaptivity` section).
   const MeshAdaptation* adaptation() const { return adaptation_.get(); }
-  // Refinement level per tissue element (all 0 without adaptivity).
+  // Refinement level per tissue element (all 0 without adaptivity), of the mesh in use.
   std::vector<int> elementLevels() const;
+  // Active elements per level 0..max_level and hanging nodes of the mesh in use (a deferred
+  // mesh change is not in use until its switch).
+  std::vector<int> elementsPerLevel() const;
+  int hangingNodes() const { return hanging_nodes_; }
+  // A mesh change decided and being built in the background (adaptivity.rebuild_lag).
+  bool rebuildPending() const { return pending_rebuild_ != nullptr; }
+  // Deferred mesh changes so far, and those whose switch had to wait for the build.
+  long deferredRebuilds() const { return deferred_rebuilds_; }
+  long rebuildWaits() const { return rebuild_waits_; }
+  // Tests: every background mesh-change build takes at least this long (a late build).
+  static void setRebuildDelayForTesting(double ms);
   // SPR estimate of the current state; computed on first use after each step (adaptive
   // runs compute it anyway and share it).
   const ErrorEstimate& errorEstimate() const;
@@ -137,7 +150,8 @@ class Simulation {
 
  private:
   void checkState() const;
-  void adaptMesh();
+  // defer: a change may be built in the background (dynamic steps with rebuild_lag > 0).
+  void adaptMesh(bool defer = false);
   // One estimate + mark + refine/coarsen pass with the scene's estimator (spr or goal).
   AdaptationResult adaptationPass();
   // The estimators bound to the current tissue body were made for another one.
@@ -146,6 +160,13 @@ class Simulation {
   // probes and constraint points re-embedded; without persistent_loads (during the
   // pre-step) the brain-shift loads are left out and the velocities zeroed.
   void rebuildTissue(bool persistent_loads = true);
+  // A deferred mesh change (adaptivity.rebuild_lag): the new body built on a background
+  // thread from this step's state, switched to rebuild_lag steps later (finishRebuild, also
+  // before any other adaptation pass).
+  void startRebuild();
+  void finishRebuild();
+  // The levels and hanging nodes of the adaptive mesh now in use.
+  void noteActiveMesh();
   // The brain-shift pre-step, with its solve/adapt passes on an adaptive mesh.
   void preStep();
   // Re-aims every needle at the brain-shift target's shifted position (brain_shift.replan).
@@ -188,6 +209,20 @@ class Simulation {
   std::vector<TrajectoryReplan> replans_;
   VecX reference_;  // the shifted state (current mesh): the estimate's reference, or empty
   std::unique_ptr<MeshAdaptation> adaptation_;
+  struct PreparedTissue {
+    std::unique_ptr<TissueBody> tissue;
+    std::unique_ptr<EmbeddedSurface> organ;
+  };
+  struct PendingRebuild {
+    std::shared_future<std::shared_ptr<PreparedTissue>> job;
+    long switch_step = 0;
+    std::vector<int> levels;
+    int hanging = 0;
+  };
+  std::unique_ptr<PendingRebuild> pending_rebuild_;
+  std::vector<int> levels_;  // of the mesh in use
+  int hanging_nodes_ = 0;
+  long deferred_rebuilds_ = 0, rebuild_waits_ = 0;
   mutable std::unique_ptr<SprEstimator> estimator_;  // bound to the current tissue body
   mutable ErrorEstimate estimate_;
   mutable long estimate_step_ = -1;
@@ -207,6 +242,7 @@ class Simulation {
   double qoi_radius_ = 0;                   // default radius: half the finest element's edge
   std::vector<int> goal_targets_;          // goal-oriented adaptivity: the targets it controls
   long contact_signature_ = 0;  // constraint counts and states at the last step
+  bool pass_due_ = false;       // an adaptation pass waits for a deferred mesh change
   long step_ = 0;
   long step_base_ = 0;     // time() = time_base_ + (step_ - step_base_) dt, so that dt may change
   double time_base_ = 0;

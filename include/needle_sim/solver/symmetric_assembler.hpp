@@ -5,10 +5,12 @@
 //
 // Each element lists, for each of its k local DOFs, the free DOFs and weights it is made of
 // (one entry of weight 1 for an ordinary DOF, none for a prescribed one, several for a
-// hanging one). The sparsity pattern and, for each element, the (value position, local
-// entry, weight) triplets are computed once per topology; assembling is then a pure
-// scatter-add with no search and no allocation. The same class serves the hexahedra
-// (k = 24) and the beam elements (k = 12).
+// hanging one). Per element the m distinct free DOFs it touches, its local-to-free weights,
+// and the value positions of its m x m block (upper triangle) are found once per topology, in
+// time linear in the pattern (a mark array per column, no search: a mesh change rebuilds
+// this). Assembling an element forms P_e^T K_e P_e as a dense m x m block and adds it there:
+// no search and no allocation. The same class serves the hexahedra (k = 24) and the beam
+// elements (k = 12).
 #include <vector>
 
 #include "needle_sim/core/types.hpp"
@@ -39,21 +41,31 @@ class SymmetricAssembler {
   int dofsPerElement() const { return k_; }
   void setZero() { std::fill(A_.valuePtr(), A_.valuePtr() + A_.nonZeros(), 0.0); }
   // A += scale * P_e^T Ke P_e for element e; Ke is k x k, column-major.
-  void addElement(int e, const double* Ke, double scale);
+  void addElement(int e, const double* Ke, double scale) { addElementTo(A_.valuePtr(), e, Ke, scale); }
   // A += scale * diag(d) with d over free DOFs.
-  void addDiagonal(const VecX& d, double scale);
+  void addDiagonal(const VecX& d, double scale) { addDiagonalTo(A_.valuePtr(), d, scale); }
+  // The same into the values of another matrix with this pattern (a copy of matrix()): the
+  // pattern and the scatter map are read only, so another thread may assemble there.
+  void addElementTo(double* values, int e, const double* Ke, double scale) const;
+  void addDiagonalTo(double* values, const VecX& d, double scale) const;
 
  private:
-  struct Target {
-    int pos;   // index into the value array
-    int q;     // local entry j * k + i
-    double w;  // product of the two DOFs' weights
+  // The block of element e: its m_e distinct free DOFs, from block_offset_[e]; the local DOFs'
+  // expansions onto them (local i -> block index, weight), from expand_offset_[e * k]; the
+  // value position of each block entry (row index * m_e + column index) whose row <= column,
+  // -1 for the others, from pos_offset_[e].
+  struct Expansion {
+    int j;     // index into the element's block
+    double w;  // weight
   };
   int k_;
   SparseMatrix A_;
-  std::vector<int> element_offset_;  // into targets_
-  std::vector<Target> targets_;
-  std::vector<int> diag_;            // value index of each diagonal entry
+  std::vector<int> block_offset_, block_dofs_;
+  std::vector<int> expand_offset_;
+  std::vector<Expansion> expand_;
+  std::vector<int> pos_offset_, pos_;
+  std::vector<int> diag_;  // value index of each diagonal entry
+  int max_block_ = 0;
 };
 
 // Expanded DOFs of every hexahedron (k = 24).

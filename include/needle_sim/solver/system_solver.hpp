@@ -11,6 +11,19 @@
 //    so a factor a few steps old is a near-exact preconditioner (Courtecuisse et al.); it is
 //    refreshed when CG needs more than `refresh_iterations`, every `refactor_every` calls if
 //    set, or when CG fails. The answer satisfies the same tolerance either way.
+//
+// The refresh is asynchronous by default (`async`, doc/method.md "Time integration"): the
+// element rotations of the call that asks for it are captured, and a background thread
+// assembles and factorises that matrix into a second factor (its own CHOLMOD workspace)
+// while the calls go on with the old one, as many CG iterations as they need (up to
+// `max_iterations`). The new factor is swapped in at the start of the call `async_lag` calls
+// after the request, waiting for it if it is late; with `async_lag` 0 as soon as it is
+// ready. A fixed lag makes the results independent of thread timing (the same scene and
+// settings give the same numbers, bit for bit); "as soon as ready" never waits, and its
+// results differ from run to run within the CG tolerance. A call whose CG does not converge
+// with the old factor waits for the pending one (counted), or refactorises at once if none
+// is pending.
+#include <future>
 #include <memory>
 #include <vector>
 
@@ -32,6 +45,8 @@ struct LinearSolverSettings {
   int refresh_iterations = 8;  // refactor for the next call when CG needed more than this
   int refactor_every = 0;      // also refactor every N calls (0: only on demand)
   Ordering ordering = Ordering::Auto;
+  bool async = true;           // refresh the factor on a background thread
+  int async_lag = 4;           // swap it in this many calls after the request (0: when ready)
 };
 
 // Extra symmetric stiffness given per element as 24x24 blocks over the element's nodes
@@ -48,8 +63,12 @@ struct ElementBlocks {
 struct LinearSolveStats {
   int iterations = 0;           // CG iterations (0 for a direct solve)
   double relative_residual = 0;
-  bool refactored = false;
+  bool refactored = false;      // a factorisation on this call's thread
   double assemble_ms = 0, factor_ms = 0, solve_ms = 0;
+  bool async_started = false;   // a background refresh was requested
+  bool async_swapped = false;   // a background factor was swapped in
+  bool async_waited = false;    // ... after waiting for it
+  double async_wait_ms = 0;     // time spent waiting
 };
 
 class SystemSolver {
@@ -79,22 +98,67 @@ class SystemSolver {
   // Adds c_k * blocks to A until cleared (nullptr); the caller keeps them alive and
   // invalidates the factor when they change.
   void setExtraStiffness(const ElementBlocks* blocks) { extra_ = blocks; }
-  // Forces a refactorisation at the next solve.
-  void invalidate() { stale_ = true; }
+  // Factorises A = c_m M + c_k K at the model's current rotations now (a body built off the
+  // stepping thread for a deferred mesh change gets its first factor there).
+  LinearSolveStats factorNow(const VecX& mass_free, double c_m, double c_k) {
+    LinearSolveStats st;
+    refactor(mass_free, c_m, c_k, st);
+    return st;
+  }
+  // Forces a refactorisation at the next solve (synchronous: the matrix changed, e.g. the
+  // extra stiffness); a pending background refresh is dropped.
+  void invalidate();
 
-  const CholmodSolver& factor() const { return chol_; }
+  const CholmodSolver& factor() const { return *chol_; }
+  // Changes whenever the factor in use changes (the compliance cache's column versions).
+  long factorVersion() const { return version_; }
   const LinearSolverSettings& settings() const { return settings_; }
+  bool refreshPending() const { return pending_ != nullptr; }
+  // Background refreshes on or off from now (settings' `async` at construction). Static
+  // Newton turns them off: its matrix changes much between iterations (contact sets, load
+  // control), and a factor of an older iteration's matrix costs more CG than it saves.
+  void setAsync(bool on) {
+    if (!on) dropRefresh();
+    async_ = on;
+  }
+  bool async() const { return async_; }
+  // Tests: every background refresh takes at least this long (a factor that finishes late).
+  static void setRefreshDelayForTesting(double ms);
+
+  ~SystemSolver();
 
  private:
+  // A background refresh: the matrix of one call, assembled and factorised off this thread.
+  struct Refresh {
+    std::unique_ptr<CholmodSolver> factor;  // analysed like chol_, factorised on the thread
+    SparseMatrix matrix;                     // the pattern of assembler_, its own values
+    std::vector<Mat3> rotations;             // of the requesting call
+    VecX mass_free;
+    double c_m = 0, c_k = 0;
+    ElementBlocks extra;
+    long requested_call = 0;
+    double work_ms = 0;                      // assembly + factorisation on the thread
+    std::shared_future<bool> done;           // true: positive definite
+  };
   void refactor(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st);
+  void startRefresh(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st);
+  // Waits for the pending refresh and makes it the factor in use (false: it failed, and a
+  // synchronous refactorisation is due).
+  bool finishRefresh(LinearSolveStats& st);
+  void dropRefresh();
 
   const CorotationalHexModel& model_;
   const DofMap& dofs_;
   LinearSolverSettings settings_;
   SymmetricAssembler assembler_;
-  CholmodSolver chol_;
-  bool stale_ = true;
-  long calls_since_factor_ = 0;
+  std::unique_ptr<CholmodSolver> chol_;
+  long version_ = 0;
+  bool stale_ = true;          // refresh the factor (in the background if async)
+  bool must_refactor_ = false;  // refactorise before this call's solve (the matrix changed)
+  bool async_ = true;
+  long calls_ = 0, calls_since_factor_ = 0;
+  std::unique_ptr<Refresh> pending_;
+  std::unique_ptr<Refresh> spare_;  // a finished refresh's buffers, reused by the next
   mutable VecX full_in_, full_out_;
   const ElementBlocks* extra_ = nullptr;
 };

@@ -19,7 +19,8 @@ class ComplianceCache {
  public:
   static constexpr int kRefresh = 8;
   // Makes the columns of free_dofs available from `factor` (version: its factorisation count).
-  void prepare(const std::vector<int>& free_dofs, const CholmodSolver& factor, int num_free);
+  // version: that of the factor (SystemSolver::factorVersion), which columns are tagged with.
+  void prepare(const std::vector<int>& free_dofs, const CholmodSolver& factor, long version, int num_free);
   const VecX& column(int free_dof) const { return columns_.at(free_dof).x; }
   bool has(int free_dof) const { return columns_.count(free_dof) > 0; }
   long version(int free_dof) const { return columns_.at(free_dof).version; }

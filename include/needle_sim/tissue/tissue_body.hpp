@@ -92,6 +92,11 @@ class TissueBody {
   double loadPotential() const { return -f_ext_.dot(x_ - rest_); }
 
   // Sets positions/velocities (tests, restarts); prescribed DOFs are kept.
+  // A fresh body made ready off the stepping thread (a deferred mesh change,
+  // Simulation::startRebuild): the factor of the dynamic step of size h at the current state,
+  // and the compliance columns of the free DOFs of `elements` (where the constraint points
+  // are), so that its first steps need neither.
+  void prepareForSteps(double h, const std::vector<int>& elements);
   void setState(const VecX& x, const VecX& v);
   // Adds nodal forces (3n) to the constant external loads (e.g. a manufactured body force).
   void addExternalForce(const VecX& f) { f_ext_ += f; }

@@ -168,9 +168,8 @@ void CorotationalHexModel::addStiffnessProduct(const VecX& v, double s, VecX& ou
   }
 }
 
-void CorotationalHexModel::elementStiffness(int e, hex8::Mat24& Ke) const {
+void CorotationalHexModel::elementStiffness(int e, const Mat3& R, hex8::Mat24& Ke) const {
   const auto& K0 = refs_[ref_of_[e]].K0;
-  const Mat3& R = rot_[e];
   for (int a = 0; a < 8; ++a)
     for (int b = 0; b < 8; ++b)
       Ke.block<3, 3>(3 * a, 3 * b).noalias() = R * K0.block<3, 3>(3 * a, 3 * b) * R.transpose();

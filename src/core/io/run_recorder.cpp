@@ -136,7 +136,7 @@ void RunRecorder::declareColumns() {
     col("tissue_elements", [](std::ostream& o, const Row& r) { o << r.obs.tissue_elements; });
     for (int l = 0; l <= a->settings().max_level; ++l)
       col("elements_L" + std::to_string(l), [this, l](std::ostream& o, const Row&) {
-        const auto per = sim_.adaptation()->elementsPerLevel();
+        const auto per = sim_.elementsPerLevel();
         o << (l < static_cast<int>(per.size()) ? per[l] : 0);
       });
     col("refined", [](std::ostream& o, const Row& r) { o << r.obs.stats.refined; });
@@ -167,6 +167,9 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
   solve_ms_.push_back(s.solve_ms);
   linear_iterations_ += s.linear_iterations;
   factorizations_ += s.factorizations;
+  async_factorizations_ += s.async_factorizations;
+  factor_waits_ += s.factor_waits;
+  factor_wait_ms_max_ = std::max(factor_wait_ms_max_, s.factor_wait_ms);
   newton_iterations_ += s.newton_iterations;
   max_linear_iterations_ = std::max(max_linear_iterations_, s.linear_iterations);
   max_linear_residual_ = std::max(max_linear_residual_, s.linear_residual);
@@ -319,6 +322,11 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                  {"linear_iterations_max", max_linear_iterations_},
                  {"linear_residual_max", max_linear_residual_},
                  {"factorizations", factorizations_},
+                 {"async", scene.solver.linear.async},
+                 {"async_lag", scene.solver.linear.async_lag},
+                 {"async_factorizations", async_factorizations_},
+                 {"factor_waits", factor_waits_},
+                 {"factor_wait_ms_max", factor_wait_ms_max_},
                  {"newton_iterations_total", newton_iterations_}};
   if (estimate_)
     j["error_estimate"] = {{"eta_global", eta_last_}, {"eta_max", eta_max_last_}, {"eta_relative_max", eta_rel_max_}};
@@ -327,8 +335,11 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
     double total_step = std::accumulate(step_ms_.begin(), step_ms_.end(), 0.0);
     j["adaptivity"] = {{"tissue_dofs_final", sim_.tissue().mesh().numDofs()},
                        {"tissue_dofs_max", max_tissue_dofs_},
-                       {"elements_per_level", a->elementsPerLevel()},
-                       {"hanging_nodes", a->active().numHanging()},
+                       {"elements_per_level", sim_.elementsPerLevel()},
+                       {"hanging_nodes", sim_.hangingNodes()},
+                       {"rebuild_lag", a->settings().rebuild_lag},
+                       {"deferred_mesh_changes", sim_.deferredRebuilds()},
+                       {"rebuild_waits", sim_.rebuildWaits()},
                        {"mesh_changes", mesh_changes_},
                        {"cells_refined_total", refined_total_},
                        {"cells_coarsened_total", coarsened_total_},

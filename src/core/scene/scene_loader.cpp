@@ -55,7 +55,8 @@ void readSolver(const SceneReader& r, const YAML::Node& n, Scene& s) {
   }
   if (auto li = r.child(n, "solver", "linear", false)) {
     const std::string p = "solver.linear";
-    r.checkKeys(li, p, {"method", "tolerance", "max_iterations", "refresh_iterations", "refactor_every", "ordering"});
+    r.checkKeys(li, p, {"method", "tolerance", "max_iterations", "refresh_iterations", "refactor_every", "ordering",
+                        "async", "async_lag"});
     auto& L = s.solver.linear;
     if (auto m = r.child(li, p, "method", false)) {
       const std::string v = r.string(m, p + ".method");
@@ -77,6 +78,14 @@ void readSolver(const SceneReader& r, const YAML::Node& n, Scene& s) {
     readInt("max_iterations", 1, L.max_iterations);
     readInt("refresh_iterations", 0, L.refresh_iterations);
     readInt("refactor_every", 0, L.refactor_every);
+    readInt("async_lag", 0, L.async_lag);
+    if (auto v = r.child(li, p, "async", false)) {
+      try {
+        L.async = v.as<bool>();
+      } catch (const YAML::Exception&) {
+        r.fail(p + ".async", "must be true or false");
+      }
+    }
     if (auto o = r.child(li, p, "ordering", false)) {
       const std::string v = r.string(o, p + ".ordering");
       if (v == "auto") L.ordering = Ordering::Auto;
@@ -332,7 +341,7 @@ void readAdaptivity(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "adaptivity";
   if (!n.IsMap()) r.fail(p, "must be a map {estimator, marking, theta, max_level, ...}");
   r.checkKeys(n, p, {"estimator", "goal", "marking", "theta", "max_level", "max_dofs", "tolerance", "every_steps",
-                     "coarsen"});
+                     "coarsen", "rebuild_lag"});
   AdaptivitySettings a;
   if (auto v = r.child(n, p, "estimator", false)) {
     const std::string e = r.string(v, p + ".estimator");
@@ -371,6 +380,7 @@ void readAdaptivity(const SceneReader& r, const YAML::Node& n, Scene& s) {
   integerIn(n, p, "max_level", 0, 6, a.max_level);
   integerIn(n, p, "max_dofs", 0, 100000000, a.max_dofs);
   integerIn(n, p, "every_steps", 1, 1000000000, a.every_steps);
+  integerIn(n, p, "rebuild_lag", 0, 1000, a.rebuild_lag);
   if (auto v = r.child(n, p, "tolerance", false)) {
     a.tolerance = r.number(v, p + ".tolerance");
     if (a.tolerance < 0) r.fail(p + ".tolerance", "must be >= 0, got " + SceneReader::fmt(a.tolerance));

@@ -1,11 +1,15 @@
 #include "needle_sim/sim/simulation.hpp"
 
 #include <algorithm>
+#include <atomic>
+#include <thread>
+#include <future>
 #include <chrono>
 #include <cmath>
 #include <stdexcept>
 #include <sstream>
 
+#include "needle_sim/core/background_priority.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/core/stopwatch.hpp"
 
@@ -39,6 +43,7 @@ Simulation::Simulation(const Scene& scene, const Options& options) : scene_(scen
       if (immersed) setFractions(mesh, adaptation_->active().cell);
     }
     tissue_ = std::make_unique<TissueBody>(std::move(mesh), scene.tissue, scene.solver, scene.file);
+    noteActiveMesh();
   } catch (const std::invalid_argument& e) {
     throw InputError(scene.file, "tissue.geometry", std::string("invalid mesh: ") + e.what());
   }
@@ -79,7 +84,16 @@ Simulation::Simulation(const Scene& scene, const Options& options) : scene_(scen
   if (scene.brain_shift) preStep();
   if (scene.brain_shift && scene.brain_shift->replan) replanNeedles();
   for (int i = 0; i < numTargets(); ++i) target_start_.push_back(targetPosition(i));
+  // The first dynamic step's factor is part of loading the scene, as a mesh change's is part
+  // of its background build: step 1 costs what any step does.
+  if (scene.solver.mode == SolverSettings::Mode::Dynamic) tissue_->prepareForSteps(dt_, {});
 }
+
+namespace {
+std::atomic<double> g_rebuild_delay_ms{0.0};
+}  // namespace
+
+void Simulation::setRebuildDelayForTesting(double ms) { g_rebuild_delay_ms = ms; }
 
 void Simulation::replanNeedles() {
   const int t = findTarget(scene_.brain_shift->target);
@@ -115,6 +129,10 @@ Simulation::Simulation(const Simulation& o)
       shift_result_(o.shift_result_),
       replans_(o.replans_),
       reference_(o.reference_),
+      levels_(o.levels_),
+      hanging_nodes_(o.hanging_nodes_),
+      deferred_rebuilds_(o.deferred_rebuilds_),
+      rebuild_waits_(o.rebuild_waits_),
       estimate_(o.estimate_),
       estimate_step_(-1),
       estimate_ever_(o.estimate_ever_),
@@ -129,6 +147,7 @@ Simulation::Simulation(const Simulation& o)
       qoi_radius_(o.qoi_radius_),
       goal_targets_(o.goal_targets_),
       contact_signature_(o.contact_signature_),
+      pass_due_(o.pass_due_),
       step_(o.step_),
       step_base_(o.step_base_),
       time_base_(o.time_base_),
@@ -144,6 +163,18 @@ Simulation::Simulation(const Simulation& o)
     shift_->rebind(organ_.get());
   }
   if (o.adaptation_) adaptation_ = std::make_unique<MeshAdaptation>(*o.adaptation_);
+  if (o.pending_rebuild_) {
+    // The copy switches at the same step to a copy of the same body (finished here, so that
+    // both step alike whatever the thread's timing).
+    const std::shared_ptr<PreparedTissue> p = o.pending_rebuild_->job.get();
+    auto q = std::make_shared<PreparedTissue>();
+    q->tissue = std::make_unique<TissueBody>(*p->tissue);
+    if (p->organ) q->organ = std::make_unique<EmbeddedSurface>(p->organ->restPtr(), q->tissue->mesh());
+    std::promise<std::shared_ptr<PreparedTissue>> ready;
+    ready.set_value(q);
+    pending_rebuild_ = std::make_unique<PendingRebuild>(*o.pending_rebuild_);
+    pending_rebuild_->job = ready.get_future().share();
+  }
   if (o.interaction_) {
     std::vector<NeedleBody*> nd;
     for (auto& n : needles_) nd.push_back(n.get());
@@ -151,6 +182,11 @@ Simulation::Simulation(const Simulation& o)
   }
   // The estimator binds to the tissue body: made again on first use (estimate_step_ = -1,
   // the same estimate results from the same state).
+}
+
+Simulation::~Simulation() {
+  // The background build reads the scene: it finishes before the simulation goes.
+  if (pending_rebuild_ && pending_rebuild_->job.valid()) pending_rebuild_->job.wait();
 }
 
 void Simulation::setTimeStep(double dt) {
@@ -325,8 +361,25 @@ void Simulation::applyPersistentLoads() {
 }
 
 std::vector<int> Simulation::elementLevels() const {
-  if (adaptation_) return adaptation_->active().level;
+  if (adaptation_) return levels_;
   return std::vector<int>(tissue_ ? tissue_->mesh().numElements() : 0, 0);
+}
+
+std::vector<int> Simulation::elementsPerLevel() const {
+  std::vector<int> n((adaptation_ ? adaptation_->settings().max_level : 0) + 1, 0);
+  if (!adaptation_) {
+    n[0] = tissue_ ? tissue_->mesh().numElements() : 0;
+    return n;
+  }
+  for (int l : levels_)
+    if (l >= 0 && l < static_cast<int>(n.size())) ++n[l];
+  return n;
+}
+
+void Simulation::noteActiveMesh() {
+  if (!adaptation_) return;
+  levels_ = adaptation_->active().level;
+  hanging_nodes_ = adaptation_->active().numHanging();
 }
 
 const ErrorEstimate& Simulation::errorEstimate() const {
@@ -451,6 +504,80 @@ void Simulation::rebuildTissue(bool persistent_loads) {
   embedProbes();
   embedTargets();
   if (interaction_) interaction_->rebind(*tissue_, organ_.get());
+  noteActiveMesh();
+}
+
+void Simulation::startRebuild() {
+  // On this thread: the state carried to the new mesh (a transfer, cheap), its volume
+  // fractions (cached per cell), and where the constraint points are. The rest, which is
+  // most of a rebuild (DOF map, assembly pattern, factor, compliance columns, the organ's
+  // embedding), on a background thread, from values it owns.
+  const auto& act = adaptation_->active();
+  auto pending = std::make_unique<PendingRebuild>();
+  pending->switch_step = step_ + scene_.adaptivity->rebuild_lag;
+  pending->levels = act.level;
+  pending->hanging = act.numHanging();
+  HexMesh mesh = act.mesh;
+  if (immersed_) setFractions(mesh, act.cell);
+  VecX x = adaptation_->transfer(tissue_->positions()), v = adaptation_->transfer(tissue_->velocities());
+  std::vector<Vec3> points;
+  if (interaction_)
+    for (const auto& c : interaction_->constraints()) points.push_back(c->tissue.rest);
+  auto hanging = act.hanging;
+  const Scene* scene = &scene_;
+  const double h = dt_;
+  pending->job =
+      std::async(std::launch::async,
+                 [scene, h, mesh = std::move(mesh), hanging = std::move(hanging), x = std::move(x), v = std::move(v),
+                  points = std::move(points)]() mutable {
+                   lowerThisThreadPriority();
+                   auto p = std::make_shared<PreparedTissue>();
+                   p->tissue = std::make_unique<TissueBody>(std::move(mesh), scene->tissue, scene->solver, scene->file, hanging);
+                   p->tissue->setState(x, v);
+                   const HexMesh& m = p->tissue->mesh();
+                   if (scene->tissue.geometry.kind == TissueGeometry::Kind::Surface)
+                     p->organ = std::make_unique<EmbeddedSurface>(scene->tissue.geometry.surface, m);
+                   PointLocator locator(m);
+                   std::vector<int> elements;
+                   for (const Vec3& r : points) {
+                     EmbeddedPoint ep;
+                     if (locator.locate(r, ep) || locator.locateNearest(r, ep)) elements.push_back(ep.element);
+                   }
+                   std::sort(elements.begin(), elements.end());
+                   elements.erase(std::unique(elements.begin(), elements.end()), elements.end());
+                   p->tissue->prepareForSteps(h, elements);
+                   const double delay = g_rebuild_delay_ms;
+                   if (delay > 0) std::this_thread::sleep_for(std::chrono::duration<double, std::milli>(delay));
+                   return p;
+                 })
+          .share();
+  pending_rebuild_ = std::move(pending);
+  ++deferred_rebuilds_;
+}
+
+void Simulation::finishRebuild() {
+  const auto t0 = steadyNow();
+  PendingRebuild& pr = *pending_rebuild_;
+  if (pr.job.wait_for(std::chrono::seconds(0)) != std::future_status::ready) ++rebuild_waits_;
+  std::shared_ptr<PreparedTissue> p = pr.job.get();
+  // The state of now, carried over; the body keeps the factor and columns made for it.
+  const VecX x = adaptation_->transfer(tissue_->positions());
+  const VecX v = adaptation_->transfer(tissue_->velocities());
+  if (reference_.size()) reference_ = adaptation_->transfer(reference_);
+  if (shifted_.size()) shifted_ = adaptation_->transfer(shifted_);
+  forgetEstimates();
+  tissue_ = std::move(p->tissue);
+  tissue_->setState(x, v);
+  if (immersed_) organ_ = std::move(p->organ);
+  applyPersistentLoads();
+  embedProbes();
+  embedTargets();
+  if (interaction_) interaction_->rebind(*tissue_, organ_.get());
+  levels_ = std::move(pr.levels);
+  hanging_nodes_ = pr.hanging;
+  pending_rebuild_.reset();
+  last_.mesh_changed = true;
+  last_.rebuild_ms += msSince(t0);
 }
 
 AdaptationResult Simulation::refineElements(const std::vector<int>& elements) {
@@ -467,22 +594,26 @@ AdaptationResult Simulation::coarsenElements(const std::vector<int>& elements) {
   return r;
 }
 
-void Simulation::adaptMesh() {
+void Simulation::adaptMesh(bool defer) {
+  // A pass estimates the mesh the last pass decided on: a deferred change switches first.
+  if (pending_rebuild_) finishRebuild();
   const auto t0 = steadyNow();
   errorEstimate();
   for (int t : goal_targets_) targetError(t);
   const auto t1 = steadyNow();
   const AdaptationResult r = adaptationPass();
   const auto t2 = steadyNow();
-  if (r.changed) rebuildTissue();
+  const bool deferred = r.changed && defer && scene_.adaptivity->rebuild_lag > 0;
+  if (deferred) startRebuild();
+  else if (r.changed) rebuildTissue();
   const auto t3 = steadyNow();
   last_.adapted = true;
-  last_.mesh_changed = r.changed;
+  last_.mesh_changed = last_.mesh_changed || (r.changed && !deferred);
   last_.refined = r.refined;
   last_.coarsened = r.coarsened;
   last_.estimate_ms = msBetween(t0, t1);
   last_.mark_refine_ms = msBetween(t1, t2);
-  last_.rebuild_ms = msBetween(t2, t3);
+  last_.rebuild_ms += msBetween(t2, t3);
 }
 
 Vec3 Simulation::probeDisplacement(int i) const {
@@ -563,6 +694,7 @@ const StepStats& Simulation::step() {
       // on the mesh it is reported on).
       if (!dynamic && tissue_ && adaptation_)
         for (int pass = 1; pass < kMaxShiftPasses; ++pass) {
+          last_.mesh_changed = false;
           adaptMesh();
           if (!last_.mesh_changed) break;
           add(tissue_->solveStatic());
@@ -582,7 +714,19 @@ const StepStats& Simulation::step() {
     if (interaction_)
       for (int n = 0; n < numNeedles(); ++n)
         signature = signature * 1000003 + interaction_->activePoints(n) * 8 + static_cast<int>(interaction_->state(n));
-    if ((step_ - step_base_) % every_steps_ == 0 || signature != contact_signature_) adaptMesh();
+    // A deferred mesh change switches at its step, at this step boundary. A pass due while
+    // one is being built, or at the switch, waits for the first step on the new mesh: its
+    // estimate must be of a state computed there, not of one carried over.
+    bool switched = false;
+    if (pending_rebuild_ && step_ >= pending_rebuild_->switch_step) {
+      finishRebuild();
+      switched = true;
+    }
+    pass_due_ = pass_due_ || (step_ - step_base_) % every_steps_ == 0 || signature != contact_signature_;
+    if (pass_due_ && !pending_rebuild_ && !switched) {
+      pass_due_ = false;
+      adaptMesh(scene_.solver.mode == SolverSettings::Mode::Dynamic);
+    }
     contact_signature_ = signature;
   }
   return last_;

@@ -7,86 +7,104 @@ namespace needle_sim {
 
 SymmetricAssembler::SymmetricAssembler(int n, const ElementDofs& el) : k_(el.k) {
   const int k = el.k, ne = el.numElements();
-  // Free DOFs each element touches (its local DOFs' expansions, duplicates removed), and
-  // the elements touching each free DOF.
-  std::vector<int> mark(n, -1);
-  std::vector<int> el_off(ne + 1, 0), el_dofs;
-  std::vector<std::vector<int>> dof_elements(n);
+  // 1. Per element its distinct free DOFs (the block), each local DOF's expansion onto the
+  //    block, and for each free DOF the elements touching it with its index in their block.
+  std::vector<int> mark(n, -1), index(n, -1);
+  std::vector<std::vector<std::pair<int, int>>> dof_elements(n);
+  block_offset_.assign(ne + 1, 0);
+  expand_offset_.assign(static_cast<size_t>(ne) * k + 1, 0);
   for (int e = 0; e < ne; ++e) {
-    for (int a = el.offset[e * k]; a < el.offset[(e + 1) * k]; ++a) {
-      const int r = el.entries[a].free;
-      if (mark[r] == e) continue;
-      mark[r] = e;
-      el_dofs.push_back(r);
-      dof_elements[r].push_back(e);
+    const int b0 = static_cast<int>(block_dofs_.size());
+    for (int i = 0; i < k; ++i) {
+      for (int a = el.offset[e * k + i]; a < el.offset[e * k + i + 1]; ++a) {
+        const int r = el.entries[a].free;
+        if (mark[r] != e) {
+          mark[r] = e;
+          index[r] = static_cast<int>(block_dofs_.size()) - b0;
+          block_dofs_.push_back(r);
+          dof_elements[r].emplace_back(e, index[r]);
+        }
+        expand_.push_back({index[r], el.entries[a].weight});
+      }
+      expand_offset_[e * k + i + 1] = static_cast<int>(expand_.size());
     }
-    el_off[e + 1] = static_cast<int>(el_dofs.size());
+    block_offset_[e + 1] = static_cast<int>(block_dofs_.size());
+    max_block_ = std::max(max_block_, block_offset_[e + 1] - b0);
   }
-  // Column c of the upper triangle: the DOFs r <= c of the elements touching c, found with a
-  // marker (no duplicates to sort away), plus the diagonal (always present: the mass).
+  // 2. Column c of the upper triangle: the block DOFs r <= c of the elements touching c
+  //    (marker: no duplicates), plus the diagonal (always present: the mass).
   std::fill(mark.begin(), mark.end(), -1);
-  std::vector<std::vector<int>> rows(n);
+  std::vector<int> outer(n + 1, 0);
+  std::vector<int> rows;
+  std::vector<std::vector<int>> col_rows(n);
   for (int c = 0; c < n; ++c) {
-    auto& v = rows[c];
+    rows.clear();
     mark[c] = c;
-    v.push_back(c);
-    for (int e : dof_elements[c])
-      for (int t = el_off[e]; t < el_off[e + 1]; ++t) {
-        const int r = el_dofs[t];
+    rows.push_back(c);
+    for (const auto& [e, j] : dof_elements[c])
+      for (int t = block_offset_[e]; t < block_offset_[e + 1]; ++t) {
+        const int r = block_dofs_[t];
         if (r < c && mark[r] != c) {
           mark[r] = c;
-          v.push_back(r);
+          rows.push_back(r);
         }
       }
-  }
-  auto forPairs = [&](int e, auto&& fn) {
-    for (int j = 0; j < k; ++j)
-      for (int i = 0; i < k; ++i)
-        for (int a = el.offset[e * k + i]; a < el.offset[e * k + i + 1]; ++a)
-          for (int b = el.offset[e * k + j]; b < el.offset[e * k + j + 1]; ++b) {
-            const DofWeight &ri = el.entries[a], &rj = el.entries[b];
-            if (ri.free <= rj.free) fn(ri.free, rj.free, j * k + i, ri.weight * rj.weight);
-          }
-  };
-  std::vector<int> outer(n + 1, 0);
-  for (int c = 0; c < n; ++c) {
-    auto& v = rows[c];
-    std::sort(v.begin(), v.end());
-    outer[c + 1] = outer[c] + static_cast<int>(v.size());
+    std::sort(rows.begin(), rows.end());
+    col_rows[c] = rows;
+    outer[c + 1] = outer[c] + static_cast<int>(rows.size());
   }
   A_.resize(n, n);
   A_.resizeNonZeros(outer[n]);
   std::copy(outer.begin(), outer.end(), A_.outerIndexPtr());
-  for (int c = 0; c < n; ++c) std::copy(rows[c].begin(), rows[c].end(), A_.innerIndexPtr() + outer[c]);
+  for (int c = 0; c < n; ++c) std::copy(col_rows[c].begin(), col_rows[c].end(), A_.innerIndexPtr() + outer[c]);
   setZero();
-
-  auto find = [&](int row, int col) {
-    const int* b = A_.innerIndexPtr() + outer[col];
-    const int* e = A_.innerIndexPtr() + outer[col + 1];
-    const int* it = std::lower_bound(b, e, row);
-    assert(it != e && *it == row);
-    return static_cast<int>(it - A_.innerIndexPtr());
-  };
-  element_offset_.assign(ne + 1, 0);
+  // 3. Value positions of each element's block entries (row <= column), column by column:
+  //    the column's row positions in a scatter array, read for each element touching it.
+  pos_offset_.assign(ne + 1, 0);
   for (int e = 0; e < ne; ++e) {
-    forPairs(e, [&](int r, int c, int q, double w) { targets_.push_back({find(r, c), q, w}); });
-    element_offset_[e + 1] = static_cast<int>(targets_.size());
+    const int m = block_offset_[e + 1] - block_offset_[e];
+    pos_offset_[e + 1] = pos_offset_[e] + m * m;
   }
+  pos_.assign(pos_offset_[ne], -1);
+  std::vector<int> at(n, -1);
   diag_.resize(n);
-  for (int c = 0; c < n; ++c) diag_[c] = find(c, c);
-}
-
-void SymmetricAssembler::addElement(int e, const double* Ke, double scale) {
-  double* v = A_.valuePtr();
-  for (int t = element_offset_[e]; t < element_offset_[e + 1]; ++t) {
-    const Target& tg = targets_[t];
-    v[tg.pos] += scale * tg.w * Ke[tg.q];
+  for (int c = 0; c < n; ++c) {
+    for (int q = outer[c]; q < outer[c + 1]; ++q) at[A_.innerIndexPtr()[q]] = q;
+    diag_[c] = at[c];
+    for (const auto& [e, jc] : dof_elements[c]) {
+      const int b0 = block_offset_[e], m = block_offset_[e + 1] - b0;
+      for (int i = 0; i < m; ++i) {
+        const int r = block_dofs_[b0 + i];
+        if (r <= c) pos_[pos_offset_[e] + i * m + jc] = at[r];
+      }
+    }
+    for (int q = outer[c]; q < outer[c + 1]; ++q) at[A_.innerIndexPtr()[q]] = -1;
   }
 }
 
-void SymmetricAssembler::addDiagonal(const VecX& d, double scale) {
+void SymmetricAssembler::addElementTo(double* v, int e, const double* Ke, double scale) const {
+  // The element's block P_e^T K_e P_e (dense, m x m), then its upper triangle into A. A
+  // scratch block per thread: the stepping thread and a background refresh may both assemble.
+  thread_local std::vector<double> block;
+  const int k = k_, b0 = block_offset_[e], m = block_offset_[e + 1] - b0;
+  block.assign(static_cast<size_t>(m) * m, 0.0);
+  for (int j = 0; j < k; ++j)
+    for (int bj = expand_offset_[e * k + j]; bj < expand_offset_[e * k + j + 1]; ++bj) {
+      const Expansion& xj = expand_[bj];
+      for (int i = 0; i < k; ++i) {
+        const double kij = Ke[j * k + i] * xj.w;
+        if (kij == 0.0) continue;
+        for (int bi = expand_offset_[e * k + i]; bi < expand_offset_[e * k + i + 1]; ++bi)
+          block[static_cast<size_t>(expand_[bi].j) * m + xj.j] += expand_[bi].w * kij;
+      }
+    }
+  const int* pos = pos_.data() + pos_offset_[e];
+  for (int q = 0; q < m * m; ++q)
+    if (pos[q] >= 0) v[pos[q]] += scale * block[q];
+}
+
+void SymmetricAssembler::addDiagonalTo(double* v, const VecX& d, double scale) const {
   assert(d.size() == static_cast<int>(diag_.size()));
-  double* v = A_.valuePtr();
   for (size_t c = 0; c < diag_.size(); ++c) v[diag_[c]] += scale * d[c];
 }
 

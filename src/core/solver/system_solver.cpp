@@ -1,26 +1,68 @@
 #include "needle_sim/solver/system_solver.hpp"
 
+#include <atomic>
 #include <chrono>
+#include <thread>
 
+#include "needle_sim/core/background_priority.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/core/stopwatch.hpp"
 #include "needle_sim/solver/pcg.hpp"
 
 namespace needle_sim {
 
+namespace {
+std::atomic<double> g_refresh_delay_ms{0.0};
+}  // namespace
+
+void SystemSolver::setRefreshDelayForTesting(double ms) { g_refresh_delay_ms = ms; }
 
 SystemSolver::SystemSolver(const CorotationalHexModel& model, const DofMap& dofs,
                            const LinearSolverSettings& s)
-    : model_(model), dofs_(dofs), settings_(s), assembler_(dofs.numFree(), hexElementDofs(model.mesh(), dofs)), chol_(s.ordering) {}
+    : model_(model),
+      dofs_(dofs),
+      settings_(s),
+      assembler_(dofs.numFree(), hexElementDofs(model.mesh(), dofs)),
+      chol_(std::make_unique<CholmodSolver>(s.ordering)),
+      async_(s.async) {}
 
 SystemSolver::SystemSolver(const SystemSolver& o, const CorotationalHexModel& model, const DofMap& dofs)
     : model_(model),
       dofs_(dofs),
       settings_(o.settings_),
       assembler_(o.assembler_),
-      chol_(o.chol_),
+      chol_(std::make_unique<CholmodSolver>(*o.chol_)),
+      version_(o.version_),
       stale_(o.stale_),
-      calls_since_factor_(o.calls_since_factor_) {}
+      must_refactor_(o.must_refactor_),
+      async_(o.async_),
+      calls_(o.calls_),
+      calls_since_factor_(o.calls_since_factor_) {
+  if (o.pending_) {
+    // The copy steps as the original will: it gets the same refresh, finished (so its own
+    // swap, at the same call, needs no thread).
+    const bool ok = o.pending_->done.get();
+    pending_ = std::make_unique<Refresh>();
+    pending_->factor = std::make_unique<CholmodSolver>(*o.pending_->factor);
+    pending_->requested_call = o.pending_->requested_call;
+    pending_->work_ms = o.pending_->work_ms;
+    std::promise<bool> p;
+    p.set_value(ok);
+    pending_->done = p.get_future().share();
+  }
+}
+
+SystemSolver::~SystemSolver() { dropRefresh(); }
+
+void SystemSolver::dropRefresh() {
+  if (pending_ && pending_->done.valid()) pending_->done.wait();  // the thread reads the model
+  pending_.reset();
+}
+
+void SystemSolver::invalidate() {
+  dropRefresh();
+  must_refactor_ = true;
+}
 
 void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const {
   dofs_.scatter(v, full_in_);
@@ -40,6 +82,7 @@ void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const Ve
 }
 
 void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st) {
+  dropRefresh();  // superseded: this factor is newer
   auto t0 = steadyNow();
   assembler_.setZero();
   hex8::Mat24 Ke;
@@ -52,54 +95,132 @@ void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, Linea
   if (c_m != 0.0) assembler_.addDiagonal(mass_free, c_m);
   st.assemble_ms += msSince(t0);
   t0 = steadyNow();
-  if (!chol_.analyzed()) chol_.analyze(assembler_.matrix());
-  const bool ok = chol_.factorize(assembler_.matrix());
+  if (!chol_->analyzed()) chol_->analyze(assembler_.matrix());
+  const bool ok = chol_->factorize(assembler_.matrix());
   st.factor_ms += msSince(t0);
   st.refactored = true;
+  ++version_;
   if (!ok)
     throw NumericalError(-1, "system matrix is not positive definite (are rigid motions "
                              "constrained? is the mesh inverted?)");
   stale_ = false;
+  must_refactor_ = false;
   calls_since_factor_ = 0;
+}
+
+void SystemSolver::startRefresh(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st) {
+  // On this thread only what the matrix depends on (rotations, mass, scales, extra blocks):
+  // a few hundred kilobytes. The thread reads the model's element references and the
+  // assembler's scatter map, which do not change while this solver lives.
+  std::unique_ptr<Refresh> r = spare_ ? std::move(spare_) : std::make_unique<Refresh>();
+  if (!r->factor) {
+    r->factor = std::make_unique<CholmodSolver>(*chol_);  // the analysis (and a factor, overwritten)
+    r->matrix = assembler_.matrix();
+  }
+  r->rotations.resize(model_.numElements());
+  for (int e = 0; e < model_.numElements(); ++e) r->rotations[e] = model_.rotation(e);
+  r->mass_free = mass_free;
+  r->c_m = c_m;
+  r->c_k = c_k;
+  r->extra = extra_ ? *extra_ : ElementBlocks{};
+  r->requested_call = calls_;
+  Refresh* job = r.get();
+  const CorotationalHexModel* model = &model_;
+  const SymmetricAssembler* assembler = &assembler_;
+  r->done = std::async(std::launch::async, [job, model, assembler] {
+              lowerThisThreadPriority();
+              const auto t0 = steadyNow();
+              double* v = job->matrix.valuePtr();
+              std::fill(v, v + job->matrix.nonZeros(), 0.0);
+              hex8::Mat24 Ke;
+              for (int e = 0; e < model->numElements(); ++e) {
+                model->elementStiffness(e, job->rotations[e], Ke);
+                assembler->addElementTo(v, e, Ke.data(), job->c_k);
+              }
+              for (size_t i = 0; i < job->extra.element.size(); ++i)
+                assembler->addElementTo(v, job->extra.element[i], job->extra.K[i].data(), job->c_k);
+              if (job->c_m != 0.0) assembler->addDiagonalTo(v, job->mass_free, job->c_m);
+              const bool ok = job->factor->factorize(job->matrix);
+              const double delay = g_refresh_delay_ms;
+              if (delay > 0) std::this_thread::sleep_for(std::chrono::duration<double, std::milli>(delay));
+              job->work_ms = msSince(t0);
+              return ok;
+            }).share();
+  pending_ = std::move(r);
+  st.async_started = true;
+}
+
+bool SystemSolver::finishRefresh(LinearSolveStats& st) {
+  Refresh& r = *pending_;
+  if (r.done.wait_for(std::chrono::seconds(0)) != std::future_status::ready) {
+    const auto t0 = steadyNow();
+    r.done.wait();
+    st.async_wait_ms += msSince(t0);
+    st.async_waited = true;
+  }
+  const bool ok = r.done.get();
+  if (ok) {
+    std::swap(chol_, r.factor);  // the old factor's buffers serve the next refresh
+    ++version_;
+    stale_ = false;
+    calls_since_factor_ = calls_ - r.requested_call;
+    st.async_swapped = true;
+  }
+  spare_ = std::move(pending_);
+  return ok;
 }
 
 LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x,
                                      double tolerance) {
   LinearSolveStats st;
+  ++calls_;
   const bool direct = settings_.method == LinearSolverSettings::Method::Direct;
-  if (direct || stale_ || !chol_.factored() ||
-      (settings_.refactor_every > 0 && calls_since_factor_ >= settings_.refactor_every))
+  if (pending_) {
+    // Swapped in at a fixed number of calls after the request (the same results whatever the
+    // thread's timing), or as soon as it is ready with async_lag 0.
+    const bool due = settings_.async_lag > 0
+                         ? calls_ - pending_->requested_call >= settings_.async_lag
+                         : pending_->done.wait_for(std::chrono::seconds(0)) == std::future_status::ready;
+    if (due && !finishRefresh(st)) stale_ = true;
+  }
+  if (direct || must_refactor_ || !chol_->factored() ||
+      (settings_.refactor_every > 0 && calls_since_factor_ >= settings_.refactor_every)) {
     refactor(mass_free, c_m, c_k, st);
+  } else if (stale_ && !pending_) {
+    if (async_) startRefresh(mass_free, c_m, c_k, st);
+    else refactor(mass_free, c_m, c_k, st);
+  }
   ++calls_since_factor_;
 
   auto t0 = steadyNow();
   if (direct) {
-    chol_.solve(b, x);
+    chol_->solve(b, x);
     st.solve_ms = msSince(t0);
     if (!x.allFinite()) throw NumericalError(-1, "linear solve produced NaN/Inf");
     return st;
   }
   auto A = [&](const VecX& v, VecX& out) { apply(mass_free, c_m, c_k, v, out); };
-  auto M = [&](const VecX& r, VecX& z) { chol_.solve(r, z); };
+  auto M = [&](const VecX& r, VecX& z) { chol_->solve(r, z); };
   if (x.size() != b.size() || !x.allFinite()) x.setZero(b.size());
   const double tol = tolerance > 0 ? tolerance : settings_.tolerance;
   PcgResult r = pcg(A, M, b, x, tol, settings_.max_iterations);
-  if (!r.converged && !st.refactored) {
-    // The stale preconditioner is too far off: refresh it and solve again.
+  // The preconditioner is too far off: take the pending refresh (waiting for it) and solve
+  // again; if that is not enough either (it was made for an older matrix), refresh now.
+  for (int attempt = 0; attempt < 2 && !r.converged && !st.refactored; ++attempt) {
     st.solve_ms += msSince(t0);
-    refactor(mass_free, c_m, c_k, st);
+    if (!(attempt == 0 && pending_ && finishRefresh(st))) refactor(mass_free, c_m, c_k, st);
     t0 = steadyNow();
     const int first = r.iterations;
     r = pcg(A, M, b, x, tol, settings_.max_iterations);
     r.iterations += first;
   }
-  st.solve_ms += msSince(t0);
+  st.solve_ms += msSince(t0) + st.async_wait_ms;
   st.iterations = r.iterations;
   st.relative_residual = r.relative_residual;
   if (!r.converged || !x.allFinite())
     throw NumericalError(-1, "conjugate gradients did not converge (relative residual " +
                                  std::to_string(r.relative_residual) + ")");
-  if (r.iterations > settings_.refresh_iterations) stale_ = true;
+  if (r.iterations > settings_.refresh_iterations && !pending_) stale_ = true;
   return st;
 }
 
@@ -107,11 +228,11 @@ LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m
                                                Eigen::MatrixXd& X, double tolerance, int max_iterations,
                                                bool& converged) {
   LinearSolveStats st;
-  const bool own_factor = !chol_.factored();  // e.g. the first estimate on a new mesh, before any step
+  const bool own_factor = !chol_->factored();  // e.g. the first estimate on a new mesh, before any step
   if (own_factor) refactor(mass_free, c_m, c_k, st);
   const auto t0 = steadyNow();
   auto A = [&](const VecX& v, VecX& out) { apply(mass_free, c_m, c_k, v, out); };
-  auto M = [&](const VecX& r, VecX& z) { chol_.solve(r, z); };
+  auto M = [&](const VecX& r, VecX& z) { chol_->solve(r, z); };
   // X as it comes is the initial guess when it has B's shape (a previous pass's solution).
   if (X.rows() != B.rows() || X.cols() != B.cols() || !X.allFinite()) X.setZero(B.rows(), B.cols());
   converged = true;
@@ -127,7 +248,7 @@ LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m
   // A factor made here is of this call's matrix (the dual's K), not of the step's A: the next
   // step must refactor rather than take it as its preconditioner, and the compliance cache
   // must not take its columns (they would be K^-1's, about h(h + beta) too small).
-  if (own_factor) stale_ = true;
+  if (own_factor) must_refactor_ = true;
   return st;
 }
 

@@ -6,8 +6,8 @@
 
 namespace needle_sim {
 
-void ComplianceCache::prepare(const std::vector<int>& free_dofs, const CholmodSolver& factor, int num_free) {
-  const long version = factor.factorizations();
+void ComplianceCache::prepare(const std::vector<int>& free_dofs, const CholmodSolver& factor, long version,
+                              int num_free) {
   std::vector<int> todo;
   std::vector<std::pair<long, int>> stale;
   for (int f : free_dofs) {

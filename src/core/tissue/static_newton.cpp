@@ -29,6 +29,15 @@ struct Detach {
     s.invalidate();
   }
 };
+
+// Static Newton refreshes its factor on this thread (SystemSolver::setAsync); the dynamic
+// steps after it get their background refreshes back.
+struct SynchronousRefresh {
+  SystemSolver& s;
+  const bool was;
+  explicit SynchronousRefresh(SystemSolver& solver) : s(solver), was(solver.async()) { s.setAsync(false); }
+  ~SynchronousRefresh() { s.setAsync(was); }
+};
 }  // namespace
 
 StepStats TissueBody::solveStatic() {
@@ -50,6 +59,7 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
   };
   double ref = loadNorm(), rn0 = 0;
   Detach detach{*solver_, supportOrNull()};  // the solver must not keep `blocks` past this call
+  SynchronousRefresh synchronous(*solver_);
   // Residual (free DOFs) at the current x_, with the extra terms' blocks.
   auto residual = [&](VecX& out) {
     model_->updateRotations(x_);

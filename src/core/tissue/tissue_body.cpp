@@ -63,6 +63,9 @@ void TissueBody::accumulate(StepStats& s, const LinearSolveStats& l) const {
   s.solve_ms += l.solve_ms;
   s.linear_iterations += l.iterations;
   s.factorizations += l.refactored ? 1 : 0;
+  s.async_factorizations += l.async_swapped ? 1 : 0;
+  s.factor_waits += l.async_waited ? 1 : 0;
+  s.factor_wait_ms += l.async_wait_ms;
   s.linear_residual = std::max(s.linear_residual, l.relative_residual);
 }
 
@@ -80,7 +83,7 @@ void TissueBody::commit(double h) {
 }
 
 void TissueBody::complianceBlock(const std::vector<int>& free_dofs, Eigen::MatrixXd& C) const {
-  columns_.prepare(free_dofs, solver_->factor(), dofs_.numFree());
+  columns_.prepare(free_dofs, solver_->factor(), solver_->factorVersion(), dofs_.numFree());
   const auto k = static_cast<Eigen::Index>(free_dofs.size());
   C.resize(k, k);
   for (Eigen::Index j = 0; j < k; ++j) {
@@ -91,7 +94,7 @@ void TissueBody::complianceBlock(const std::vector<int>& free_dofs, Eigen::Matri
 }
 
 void TissueBody::addInverseColumns(const std::vector<int>& free_dofs, const VecX& c) {
-  columns_.prepare(free_dofs, solver_->factor(), dofs_.numFree());
+  columns_.prepare(free_dofs, solver_->factor(), solver_->factorVersion(), dofs_.numFree());
   for (size_t j = 0; j < free_dofs.size(); ++j)
     if (c[static_cast<Eigen::Index>(j)] != 0)
       dv_free_.noalias() += c[static_cast<Eigen::Index>(j)] * columns_.column(free_dofs[j]);
@@ -151,6 +154,24 @@ bool TissueBody::solveDual(const Eigen::MatrixXd& G, Eigen::MatrixXd& Z, int& it
 }
 
 double TissueBody::kineticEnergy() const { return 0.5 * (mass_.array() * v_.array().square()).sum(); }
+
+void TissueBody::prepareForSteps(double h, const std::vector<int>& elements) {
+  model_->updateRotations(x_);
+  solver_->factorNow(mass_free_, 1 + h * settings_.rayleigh_mass, h * settings_.rayleigh_stiffness + h * h);
+  std::vector<int> free;
+  std::vector<char> seen(dofs_.numFree(), 0);
+  for (int e : elements)
+    for (int a = 0; a < 8; ++a)
+      for (int d = 0; d < 3; ++d) {
+        const int full = 3 * mesh_->element(e)[a] + d;
+        for (const DofWeight* x = dofs_.expansionBegin(full); x != dofs_.expansionEnd(full); ++x)
+          if (!seen[x->free]) {
+            seen[x->free] = 1;
+            free.push_back(x->free);
+          }
+      }
+  if (!free.empty()) columns_.prepare(free, solver_->factor(), solver_->factorVersion(), dofs_.numFree());
+}
 
 void TissueBody::setState(const VecX& x, const VecX& v) {
   for (int i = 0; i < dofs_.numFull(); ++i)

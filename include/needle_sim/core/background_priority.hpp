@@ -1,0 +1,18 @@
+#pragma once
+// Background work (a factor refresh, a mesh change's new body: doc/method.md "Time
+// integration" and "Refinement and coarsening") must not delay the stepping thread: on two
+// cores, with the stepping thread, a ROS node's output thread and a refresh runnable at once,
+// an equal share cost steps a whole scheduler slice (about 4 ms). The background thread runs
+// at nice +10 (Linux: a thread's own nice value), so the stepping thread preempts it; it still
+// gets a core whenever one is free.
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
+namespace needle_sim {
+
+inline void lowerThisThreadPriority() {
+  (void)setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), 10);
+}
+
+}  // namespace needle_sim
