@@ -3,7 +3,7 @@
     needle_sim ensemble SCENE --samples N --vary KEY=DIST ... [--sampling lhs|sobol|saltelli]
         [--seed S] [--trajectories FILE] [--set KEY=VALUE ...] [--target NAME]
         [--target-error] [--target-error-every N] [--scheduler tcp://HOST:PORT] [--workers K]
-        [--timeout S] [--keep-runs] [--resume] [--no-plot] [--tool PATH] --out DIR
+        [--connect-timeout S] [--timeout S] [--keep-runs] [--resume] [--no-plot] [--tool PATH] --out DIR
 
 Exit status: 0 every planned run has a row (failed samples included); 1 runs were lost (the
 engine gave up on them: --resume runs them again); 2 invalid input, before any run; 130
@@ -47,6 +47,7 @@ def parser():
     ap.add_argument("--target-error", action="store_true", help="pass --target-error to the runs: the error_bound column")
     ap.add_argument("--target-error-every", type=int, metavar="N", help="... estimated every N steps")
     ap.add_argument("--scheduler", help="address of a running Dask scheduler (default: a LocalCluster)")
+    ap.add_argument("--connect-timeout", type=float, default=10, metavar="S", help="give up connecting to --scheduler after S seconds")
     ap.add_argument("--workers", type=int, help="LocalCluster workers (default: one per core)")
     ap.add_argument("--timeout", type=float, help="a run taking longer is stopped and recorded as crashed [s]")
     ap.add_argument("--keep-runs", action="store_true", help="keep each run's folder as DIR/runs/NNNNN")
@@ -190,14 +191,15 @@ def write_samples(path, keys, runs):
 class Study:
     """The running study: turns results into rows, keeps summary.json current."""
 
-    def __init__(self, out, definition, facts, design, runs, log, engine_text):
+    def __init__(self, out, definition, facts, design, runs, log, engine_text, workers):
         self.out, self.definition, self.facts, self.design, self.runs, self.log = out, definition, facts, design, runs, log
         self.keys = [d.key for d in design.dists]
         self.numeric = [d.key for d in design.dists if d.numeric]
         self.outputs = facts["columns"]
-        self.engine_text = engine_text
+        self.engine_text, self.workers = engine_text, workers
         self.t0 = time.monotonic()
         self.session_done = 0
+        self.task_s, self.run_s = [], []  # this session's: the whole task, the tool's stepping
         self.last_summary = 0.0
 
     def on_result(self, run_id, result):
@@ -209,8 +211,26 @@ class Study:
         row.update(result.get("outputs") or {})
         self.log.append(row)
         self.session_done += 1
+        if result.get("task_s") is not None:
+            self.task_s.append(result["task_s"])
+        if result.get("wall_time_s") is not None:
+            self.run_s.append(result["wall_time_s"])
         if time.monotonic() - self.last_summary > 2.0:
             self.write_summary()
+
+    def throughput(self, elapsed):
+        """This session's runs per second against the ideal, workers / mean task time: the
+        share lost to the engine (scheduling, transfers, idle workers at the end)."""
+        t = {"runs": self.session_done, "wall_s": elapsed, "workers": self.workers,
+             "runs_per_s": self.session_done / elapsed if elapsed > 0 else None}
+        if self.task_s:
+            mean_task = sum(self.task_s) / len(self.task_s)
+            t["mean_task_s"] = mean_task
+            t["efficiency"] = t["runs_per_s"] * mean_task / self.workers if t["runs_per_s"] and self.workers else None
+        if self.run_s and self.task_s:
+            # the tool's time outside its steps (loading, meshing, brain shift) and the task's own
+            t["mean_overhead_s"] = t["mean_task_s"] - sum(self.run_s) / len(self.run_s)
+        return t
 
     def write_summary(self, final=False):
         rows = [self.log.rows[k] for k in sorted(self.log.rows)]
@@ -221,7 +241,7 @@ class Study:
              "seed": self.definition["seed"], "trajectories": trajs,
              "runs": {"planned": len(self.runs), "recorded": len(rows), "complete": len(rows) == len(self.runs) and final},
              "engine": self.engine_text,
-             "session": {"runs": self.session_done, "wall_s": el, "runs_per_s": self.session_done / el if el > 0 else None},
+             "session": self.throughput(el),
              "units": "SI: lengths m, forces N, times s",
              **statistics.summarize(rows, self.keys, self.numeric, self.outputs, trajs,
                                     self.definition["sampling"] == "saltelli")}
@@ -255,11 +275,16 @@ def run(a):
 
     from .engine import Engine  # imported late: a bad command line is refused without starting Dask
 
-    engine = Engine(a.scheduler, a.workers)
+    def start_engine():
+        e = Engine(a.scheduler, a.workers, a.connect_timeout)
+        print(f"ensemble: {e.describe()}", file=sys.stderr)
+        return e
+
+    engine = None  # started only when there is something to run
     try:
-        print(f"ensemble: {engine.describe()}", file=sys.stderr)
         if facts is None:
             os.makedirs(out, exist_ok=True)
+            engine = start_engine()
             facts = preflight(engine, a.tool, definition, design, runs)
             facts["columns"] = output_columns(facts, definition)
             write_samples(os.path.join(out, "samples.csv"), keys, runs)
@@ -268,17 +293,22 @@ def run(a):
             print(f"ensemble: {len(runs)} runs ({len(design)} samples x {len(runs) // len(design)} trajectories), "
                   f"seed {definition['seed']}, target {facts['target']}", file=sys.stderr)
         log = store.ResultLog(os.path.join(out, "ensemble.csv"), store.columns(keys, facts["columns"]))
-        study = Study(out, definition, facts, design, runs, log, engine.describe())
         missing = [r for r in runs if r[0] not in log.rows]
         if a.resume:
             print(f"ensemble: resuming: {len(log.rows)} of {len(runs)} runs recorded, running the {len(missing)} missing",
                   file=sys.stderr)
+        if missing and engine is None:
+            engine = start_engine()
+        study = Study(out, definition, facts, design, runs, log, engine.describe() if engine else None,
+                      engine.threads() if engine else 0)
         keep = os.path.join(out, "runs") if a.keep_runs else None
         jobs = [(r[0], (a.tool, definition["scene"], _set_args(r[5]) + definition["run_args"], r[0], facts["target"],
                         os.path.join(keep, f"{r[0]:05d}") if keep else None, a.timeout)) for r in missing]
-        engine.map(run_sample, jobs, study.on_result)
+        if jobs:
+            engine.map(run_sample, jobs, study.on_result)
     finally:
-        engine.close()
+        if engine is not None:
+            engine.close()
     rows, trajs = study.write_summary(final=True)
     if not a.no_plot:
         files = plots.write_all(out, rows, study.numeric, facts["columns"], trajs, facts.get("axis"),

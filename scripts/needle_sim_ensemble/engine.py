@@ -28,8 +28,10 @@ class Engine:
         from . import run_task
 
         # Ship the task's code with each task: workers need Python with dask.distributed and
-        # the needle_sim tool, not this package on their path.
-        cloudpickle.register_pickle_by_value(sys.modules[run_task.__name__.rpartition(".")[0]])
+        # the needle_sim tool, not this package on their path. Dask pickles a function by value
+        # only if its own module (not its package) is registered; run_task imports only the
+        # standard library.
+        cloudpickle.register_pickle_by_value(run_task)
         self.cluster = None
         if scheduler:
             try:
@@ -52,7 +54,12 @@ class Engine:
     def describe(self):
         w = self.client.scheduler_info().get("workers", {})
         kind = "LocalCluster" if self.cluster else "scheduler"
-        return f"{kind} {self.client.scheduler.address}, {len(w)} workers, {sum(x.get('nthreads', 1) for x in w.values())} threads"
+        return f"{kind} {self.client.scheduler.address}, {len(w)} workers, {self.threads()} threads"
+
+    def threads(self):
+        """Tasks the cluster runs at once (one per worker thread)."""
+        w = self.client.scheduler_info().get("workers", {})
+        return sum(x.get("nthreads", 1) for x in w.values()) or 1
 
     def map(self, fn, jobs, on_result, label="runs"):
         """jobs: [(job id, args tuple)]. Calls on_result(job id, result or exception) as each
@@ -62,7 +69,7 @@ class Engine:
         tag = uuid.uuid4().hex[:8]  # keys of this session's tasks, unique on a shared scheduler
         futures = {}
         for job_id, args in jobs:
-            f = self.client.submit(fn, *args, key=f"needle_sim-{label}-{job_id}-{tag}", pure=False)
+            f = self.client.submit(fn, *args, key=f"needle_sim-{label.replace(' ', '_')}-{job_id}-{tag}", pure=False)
             futures[f] = job_id
         progress = Progress(len(futures), label)
         try:

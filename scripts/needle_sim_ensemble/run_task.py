@@ -22,6 +22,7 @@ Statuses: `ok`, `numerical_failure` (exit 3: summary.json says so, with a messag
 """
 import csv
 import ctypes
+import json
 import os
 import shutil
 import signal
@@ -29,17 +30,21 @@ import socket
 import subprocess
 import tempfile
 import time
-import json
 
 RUN_STATUSES = ("ok", "numerical_failure", "invalid_input", "crashed")
 
 
 def _die_with_parent():
-    # prctl(PR_SET_PDEATHSIG, SIGKILL): Linux; elsewhere the run outlives a killed worker.
+    """A function for preexec_fn: prctl(PR_SET_PDEATHSIG, SIGKILL) in the child, so the run is
+    killed when the thread that started it dies. That thread is the worker's task thread,
+    which lives until the task returns (it waits for the run), so in effect: when the worker
+    dies. prctl is looked up here, in the parent: the child only calls it (no dlopen between
+    fork and exec). Linux only; elsewhere None (the run outlives a killed worker)."""
     try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)
-    except OSError:
-        pass
+        prctl = ctypes.CDLL("libc.so.6", use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    return lambda: prctl(1, signal.SIGKILL)
 
 
 def _tail(text, lines=3):
@@ -113,9 +118,9 @@ def run_sample(tool, scene, args, run_id, target, keep_dir=None, timeout=None):
     cmd = [tool, "run", scene, "--out", private, "--quiet"] + list(args)
     result = {"worker": f"{socket.gethostname()}:{os.getpid()}"}
     try:
-        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, preexec_fn=_die_with_parent)
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, preexec_fn=_die_with_parent())
         code, stderr = p.returncode, p.stderr
-    except subprocess.TimeoutExpired as e:
+    except subprocess.TimeoutExpired:
         code, stderr = None, f"timed out after {timeout} s"
     except OSError as e:  # the worker has no such tool: the engine's fault, not the sample's
         code, stderr = "lost", f"cannot start {tool} on {socket.gethostname()}: {e.strerror}"

@@ -189,7 +189,9 @@ def load(path, scene):
             for _, prefix, nd in moved:
                 p = target + rot @ (_vec(nd["base"]["position"], f"{prefix}.base.position") - aim)
                 d = rot @ _vec(nd["base"]["direction"], f"{prefix}.base.direction")
-                sets += [f"{prefix}.base.position={_fmt_vec(p)}", f"{prefix}.base.direction={_fmt_vec(d / np.linalg.norm(d))}"]
+                # Not renormalised: the tool takes the direction as given (unit to 1e-6), so the
+                # turned tool is the scene's, rigidly, and its tips end exactly on the target.
+                sets += [f"{prefix}.base.position={_fmt_vec(p)}", f"{prefix}.base.direction={_fmt_vec(d)}"]
             info = {"entry": entry.tolist(), "target": target.tolist(),
                     "entry_target_distance": float(np.linalg.norm(axis)),
                     "start_target_distance": float(np.linalg.norm(aim - _vec(ref["base"]["position"], "base") ) - float(ref["length"])),
