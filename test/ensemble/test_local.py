@@ -162,13 +162,19 @@ class ToolHandsOver(unittest.TestCase):
         self.assertEqual(h.returncode, 0, h.stderr)
         self.assertIn("usage: needle_sim ensemble", h.stdout)
         out = out_dir("tool")
+        # with the target's error bound (needle_sim run --target-error), every 100th step
         p = subprocess.run([helpers.TOOL, "ensemble", SCENE, "--samples", "2", "--seed", "1", "--workers", "1", "--no-plot",
-                            "--vary", "interaction.friction=uniform(0.02,0.1)", "--out", out] + BASE,
+                            "--vary", "interaction.friction=uniform(0.02,0.1)", "--target-error-every", "100",
+                            "--out", out] + BASE,
                            capture_output=True, text=True, env={k: v for k, v in os.environ.items() if k != "NEEDLE_SIM_TOOL"})
         self.assertEqual(p.returncode, 0, p.stderr)
         with open(os.path.join(out, "study.json")) as f:
             self.assertEqual(os.path.realpath(json.load(f)["tool"]), os.path.realpath(helpers.TOOL))  # the tool runs itself
-        self.assertEqual([r["status"] for r in rows(os.path.join(out, "ensemble.csv"))], ["ok", "ok"])
+        table = rows(os.path.join(out, "ensemble.csv"))
+        self.assertEqual([r["status"] for r in table], ["ok", "ok"])
+        self.assertTrue(all(float(r["error_bound"]) > 0 for r in table), table)
+        with open(os.path.join(out, "summary.json")) as f:
+            self.assertEqual(json.load(f)["outputs"]["error_bound"]["count"], 2)
 
 
 if __name__ == "__main__":
