@@ -9,8 +9,8 @@
                over the sample indices whose runs in A, B and every AB_i succeeded
   statuses     runs per status
 
-With several trajectories the same per trajectory (`by_trajectory`): rank correlations over
-mixed trajectories would measure the trajectories, not the keys.
+With several trajectories the same per trajectory (`by_trajectory`), and the sensitivities
+only there: over mixed trajectories they would measure the trajectories, not the keys.
 """
 import math
 
@@ -103,8 +103,9 @@ def _group(rows, keys, numeric_keys, outputs, saltelli):
 
 def summarize(rows, keys, numeric_keys, outputs, trajectories, saltelli):
     """rows: dicts of strings (ensemble.csv). Returns the statistics part of summary.json."""
-    s = _group(rows, keys, numeric_keys, outputs, saltelli)
-    if len(trajectories) > 1:
+    several = len(trajectories) > 1
+    s = _group(rows, keys, [] if several else numeric_keys, outputs, saltelli)
+    if several:
         s["by_trajectory"] = {t: _group([r for r in rows if r["trajectory"] == t], keys, numeric_keys, outputs, saltelli)
                               for t in trajectories}
     return s
