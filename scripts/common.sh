@@ -28,6 +28,8 @@ PACKAGES=(
   libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev libcli11-dev libassimp-dev libnlopt-dev
   # plots
   python3-matplotlib python3-yaml
+  # needle_sim ensemble: sampling and statistics, the Dask engine (the tests use psutil)
+  python3-numpy python3-scipy python3-dask python3-distributed python3-psutil
 )
 
 install_missing() {

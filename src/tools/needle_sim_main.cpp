@@ -9,6 +9,7 @@
 //   needle_sim soak config/scenes/phantom_insertion_adaptive.yaml --steps 100000
 //   needle_sim predict config/scenes/phantom_insertion_adaptive.yaml --duration 10 --advance 0.02 --dt 0.01
 //   needle_sim calibrate phantom_insertion_8x4x4.yaml --data force.csv --fit interaction.cutting_force --out /tmp/c
+//   needle_sim ensemble dbs_coarse.yaml --samples 16 --vary "tissue.material.young=lognormal(6000,2)" --out /tmp/e
 //
 // Exit status: 0 success, 2 invalid input (scene, overrides, command line),
 // 3 numerical failure (NaN/Inf, divergence, solver failure; reported with the step).
@@ -20,6 +21,9 @@
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
+#include <cerrno>
+#include <cstring>
+#include <unistd.h>
 
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/denormals.hpp"
@@ -229,6 +233,18 @@ std::vector<std::string> withoutRosArgs(int argc, char** argv) {
 }
 
 int main(int argc, char** argv) {
+  if (argc > 1 && std::string(argv[1]) == "ensemble") {
+    // The ensemble tool is Python on Dask (doc/ensemble.md): it gets the other arguments, and
+    // this executable as the tool its tasks run (unless $NEEDLE_SIM_TOOL names another).
+    const std::string script = ensembleScript(), self = executablePath();
+    std::vector<char*> args{const_cast<char*>("/usr/bin/python3"), const_cast<char*>(script.c_str())};
+    args.insert(args.end(), argv + 2, argv + argc);
+    args.push_back(nullptr);
+    if (!self.empty()) setenv("NEEDLE_SIM_TOOL", self.c_str(), 0);
+    execv(args[0], args.data());
+    std::cerr << "needle_sim: cannot run /usr/bin/python3 " << script << ": " << std::strerror(errno) << '\n';
+    return 1;
+  }
   needle_sim::limitOpenMpThreads(argv);
   flushDenormalsToZero();
   CLI::App app{"needle_sim: real-time, error-controlled FE simulation of needle insertion (headless driver)", "needle_sim"};
@@ -244,7 +260,8 @@ int main(int argc, char** argv) {
   std::vector<std::string> sets;
   bool quiet = false;
   RunRecorder::Options rec_opts;
-  app.footer("Scenes named without a folder are looked up in the package's config/scenes. Reference: doc/cli.md.");
+  app.footer("Scenes named without a folder are looked up in the package's config/scenes. Reference: doc/cli.md.\n"
+             "needle_sim ensemble --help: many runs of a scene with sampled values, on Dask (doc/ensemble.md).");
   auto* run = app.add_subcommand("run", "run a scene headless: summary.json, timeseries.csv, optional VTU series");
   run->add_option("scene", scene_path, "scene file (YAML)")->required();
   run->add_option("--out,-o", out_dir, "output directory")->required();

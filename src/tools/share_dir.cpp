@@ -9,17 +9,31 @@ namespace needle_sim {
 
 namespace fs = std::filesystem;
 
-std::string shareDir() {
-  if (const char* env = std::getenv("NEEDLE_SIM_SHARE_DIR"); env && *env) return env;
+std::string executablePath() {
   char buf[4096];
   const ssize_t n = readlink("/proc/self/exe", buf, sizeof buf - 1);
-  if (n > 0) {
-    buf[n] = 0;
-    const fs::path installed = fs::path(buf).parent_path() / ".." / ".." / "share" / "needle_sim";
+  if (n <= 0) return {};
+  buf[n] = 0;
+  return buf;
+}
+
+std::string shareDir() {
+  if (const char* env = std::getenv("NEEDLE_SIM_SHARE_DIR"); env && *env) return env;
+  if (const std::string exe = executablePath(); !exe.empty()) {
+    const fs::path installed = fs::path(exe).parent_path() / ".." / ".." / "share" / "needle_sim";
     std::error_code ec;
     if (fs::exists(installed / "config" / "scenes", ec)) return fs::weakly_canonical(installed, ec).string();
   }
   return NEEDLE_SIM_SOURCE_SHARE_DIR;
+}
+
+std::string ensembleScript() {
+  std::error_code ec;
+  if (const std::string exe = executablePath(); !exe.empty()) {
+    const fs::path beside = fs::path(exe).parent_path() / "ensemble.py";
+    if (fs::exists(beside, ec)) return beside.string();
+  }
+  return std::string(NEEDLE_SIM_SOURCE_SHARE_DIR) + "/scripts/ensemble.py";
 }
 
 std::string resolveScene(const std::string& path) {

@@ -10,5 +10,11 @@ namespace needle_sim {
 
 std::string shareDir();
 std::string resolveScene(const std::string& path);
+// This executable's path (/proc/self/exe); empty if unknown.
+std::string executablePath();
+// The Python ensemble tool run by `needle_sim ensemble` (doc/ensemble.md): ensemble.py beside
+// the executable (installed: <prefix>/lib/needle_sim/; devel space: catkin's relay to the
+// source), else the source tree's scripts/ensemble.py.
+std::string ensembleScript();
 
 }  // namespace needle_sim
