@@ -64,7 +64,10 @@ def run(tool, out, scene, extra, reuse):
     if not (reuse and os.path.exists(summary) and json.load(open(summary)).get("status") == "ok"):
         cmd = [tool, "run", os.path.join(SCENES, scene), "--out", d, "--quiet"] + extra
         print("+", " ".join(cmd), flush=True)
-        subprocess.run(cmd, check=False, stdout=subprocess.DEVNULL)
+        r = subprocess.run(cmd, check=False, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if not os.path.exists(summary):  # refused before any step (exit 2): say why, go on
+            print(r.stderr.strip(), file=sys.stderr)
+            return {"status": "failed", "message": r.stderr.strip()}, []
     s = json.load(open(summary))
     rows = list(csv.DictReader(open(os.path.join(d, "timeseries.csv")))) if s.get("status") == "ok" else []
     return s, rows

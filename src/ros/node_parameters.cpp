@@ -11,6 +11,7 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   if (!pnh.getParam("scene", p.scene_file))
     throw InputError("", "~scene", "missing private parameter: the scene YAML file");
   pnh.param("set", p.overrides, std::vector<std::string>{});
+  pnh.param("deterministic_factor", p.deterministic_factor, p.deterministic_factor);
   pnh.param("tissue_frame", p.tissue_frame, p.tissue_frame);
   if (p.tissue_frame.empty()) throw InputError("", "~tissue_frame", "must not be empty");
   pnh.param("parent_frame", p.parent_frame, p.parent_frame);

@@ -15,6 +15,9 @@ namespace needle_sim {
 struct NodeParameters {
   std::string scene_file;
   std::vector<std::string> overrides;  // ~set: key.path=value, as `needle_sim run --set`
+  // ~deterministic_factor: false (default) swaps a background factor refresh in as soon as it
+  // is ready (solver.linear.async_lag 0: no step waits for it); true keeps the scene's lag.
+  bool deterministic_factor = false;
   std::string tissue_frame = "tissue";
   std::string parent_frame;             // "": the tissue frame is a root of the tf tree
   std::array<double, 7> tissue_pose{{0, 0, 0, 0, 0, 0, 1}};  // parent -> tissue: x y z qx qy qz qw

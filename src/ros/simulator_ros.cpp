@@ -28,6 +28,9 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   const NodeParameters& P = *params_;
   setBlasThreads(P.blas_threads);  // OpenBLAS threads spin between the small per-step solves
   scene_ = loadScene(P.scene_file, P.overrides);
+  // A real-time loop takes a refreshed factor as soon as it is ready: no step waits for it
+  // (doc/ros_api.md, ~deterministic_factor; the results then vary within the CG tolerance).
+  if (!P.deterministic_factor) scene_.solver.linear.async_lag = 0;
   if (P.command_source != "scene")
     for (auto& n : scene_.needles) n.motion.clear();  // the base follows the commands only
   tf_buffer_ = std::make_unique<tf2_ros::Buffer>();

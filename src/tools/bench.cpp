@@ -196,7 +196,7 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
       sum_goal += gms;
     }
     // A mesh change is counted at the step the simulation moves to the new mesh (with a
-    // deferred change, adaptivity.rebuild_lag steps after the pass that decided it).
+    // deferred change, adaptivity.rebuild_delay after the pass that decided it).
     if (s.mesh_changed) {
       ++changes;
       rebuild.push_back(s.rebuild_ms);

@@ -273,14 +273,14 @@ TEST(Adaptivity, InsertionReembedsConstraintPointsExactly) {
   EXPECT_TRUE(sim.needle(0).baseForce().allFinite());
 }
 
-// Deferred mesh changes (adaptivity.rebuild_lag): the new body is built in the background and
-// the simulation moves to it exactly `lag` steps after the pass that decided it (the state is
+// Deferred mesh changes (adaptivity.rebuild_delay): the new body is built in the background and
+// the simulation moves to it exactly the delay's steps after the pass that decided it (the state is
 // carried by the same transfer as a synchronous change, whose tests above keep their
 // tolerances; the accuracy against 32x16x16 is the next test's, on the shipped scene's lag);
 // the results do not depend on when the build finishes (a late build only makes the switch
 // wait); a copy taken while a build is pending steps exactly as the original.
 TEST(Adaptivity, DeferredMeshChangesSwitchAtTheirStepAndCarryTheState) {
-  const std::vector<std::string> sets = {"time.duration=0.8", "adaptivity.rebuild_lag=7"};
+  const std::vector<std::string> sets = {"time.duration=0.8", "adaptivity.rebuild_delay=0.007"};
   struct Trace {
     std::vector<VecX> x;
     long deferred = 0, waits = 0;
@@ -299,7 +299,7 @@ TEST(Adaptivity, DeferredMeshChangesSwitchAtTheirStepAndCarryTheState) {
       if (!was_pending && sim.rebuildPending()) decided = sim.stepIndex();
       if (checks && was_pending && !sim.rebuildPending()) {
         ++switches;
-        EXPECT_EQ(sim.stepIndex(), decided + 7) << "the switch comes rebuild_lag steps after the decision";
+        EXPECT_EQ(sim.stepIndex(), decided + 7) << "the switch comes rebuild_delay (7 steps of 1 ms) after the decision";
         EXPECT_NE(sim.tissue().mesh().numDofs(), dofs);
         EXPECT_EQ(sim.lastStats().mesh_changed, true);
       }

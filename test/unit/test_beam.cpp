@@ -363,7 +363,7 @@ TEST(TrajectoryReplan, ReaimsAStraightInsertionThroughItsEntryPoint) {
   const Vec3 entry = n.base_position + n.length * n.base_direction;
   for (double a : {0.0, 0.0872}) n.motion.push_back({a * 100, n.base_position + a * n.base_direction, n.base_direction, 0.0});
   n.motion.push_back({10.0, n.base_position + 0.03 * n.base_direction, n.base_direction, 0.0});  // back out
-  const Vec3 planned_tip = entry + 0.03 * n.base_direction;
+  const Vec3 planned_tip = entry + 0.0872 * n.base_direction;  // the deepest keyframe
   const Vec3 shift(0.001, -0.002, -0.006);
 
   // No shift: the plan as it was.
@@ -375,9 +375,9 @@ TEST(TrajectoryReplan, ReaimsAStraightInsertionThroughItsEntryPoint) {
   EXPECT_LT((r.planned_tip - planned_tip).norm(), 1e-14);
   const NeedleParameters m = replanned(n, r);
   auto tip = [&](const Vec3& base, const Vec3& dir) { return Vec3(base + m.length * dir.normalized()); };
-  // The rest pose keeps its tip at the entry point, the final tip lands on the shifted target.
+  // The rest pose keeps its tip at the entry point, the deepest tip lands on the shifted target.
   EXPECT_LT((tip(m.base_position, m.base_direction) - entry).norm(), 1e-14);
-  EXPECT_LT((tip(m.motion.back().position, m.motion.back().direction) - (planned_tip + shift)).norm(), 1e-14);
+  EXPECT_LT((tip(m.motion[1].position, m.motion[1].direction) - (planned_tip + shift)).norm(), 1e-14);
   // Every keyframe's tip stays on the new straight line through the entry point, at its
   // advance times the scale, and every axis is the new line's.
   const Vec3 axis = (planned_tip + shift - entry).normalized();
@@ -391,11 +391,12 @@ TEST(TrajectoryReplan, ReaimsAStraightInsertionThroughItsEntryPoint) {
   EXPECT_NEAR(r.scale, (planned_tip + shift - entry).norm() / (planned_tip - entry).norm(), 1e-14);
   EXPECT_NEAR(r.angle(), std::acos((planned_tip - entry).normalized().dot(axis)), 1e-7);
 
-  // A needle with no motion keeps its plan; one that ends at its entry point cannot be re-aimed.
+  // A needle with no motion keeps its plan; one that never leaves its entry point cannot be
+  // re-aimed.
   NeedleParameters still = n;
   still.motion.clear();
   EXPECT_EQ(replanFor(still, shift).rotation.coeffs(), Eigen::Quaterniond::Identity().coeffs());
-  NeedleParameters back = n;
-  back.motion.back().position = n.base_position;
-  EXPECT_THROW(replanFor(back, shift), std::invalid_argument);
+  NeedleParameters idle = n;
+  for (auto& k : idle.motion) k.position = n.base_position;
+  EXPECT_THROW(replanFor(idle, shift), std::invalid_argument);
 }

@@ -145,7 +145,8 @@ TEST(PhantomDynamics, PcgTrajectoryEqualsDirectTrajectory) {
 // The factor refreshed on a background thread (solver.linear.async) gives the synchronous
 // trajectory within the solver tolerance; with a fixed lag the same one bit for bit whether
 // the factor is on time or late (then only the step that swaps it in waits); swapped in as
-// soon as it is ready, a late factor changes only the iteration counts.
+// soon as it is ready, a late factor never makes a step wait and changes only the iteration
+// counts (the trajectory stays within the tolerance).
 TEST(PhantomDynamics, AsyncFactorRefreshGivesTheSynchronousTrajectory) {
   struct Run {
     std::vector<Vec3> probes;
@@ -180,18 +181,19 @@ TEST(PhantomDynamics, AsyncFactorRefreshGivesTheSynchronousTrajectory) {
   const Run sync = run(false, 4, 0), lag = run(true, 4, 0), late = run(true, 4, 20), ready = run(true, 0, 20);
   ASSERT_GT(sync.sync_factorizations, 3);  // refreshes happen in this swing
   EXPECT_EQ(sync.async_factorizations, 0);
-  // Async: only the first factor on the stepping thread, the refreshes in the background.
-  EXPECT_EQ(lag.sync_factorizations, 1);
+  // Async: no factorisation on the stepping thread (the first is made when the scene loads),
+  // the refreshes in the background.
+  EXPECT_EQ(lag.sync_factorizations, 0);
   EXPECT_GT(lag.async_factorizations, 3);
   EXPECT_LT(diff(lag, sync), 1e-6);
   // A late factor with a fixed lag: the same trajectory, bit for bit; the swaps waited.
   EXPECT_EQ(diff(late, lag), 0.0);
   EXPECT_EQ(late.async_factorizations, lag.async_factorizations);
   EXPECT_GT(late.waits, 0);
-  // As soon as ready: no wait, more CG iterations on the older factor, the same answers.
-  EXPECT_EQ(ready.sync_factorizations, 1);
+  // As soon as ready: no wait (CG goes on with the older factor meanwhile), the same answers.
+  EXPECT_EQ(ready.sync_factorizations, 0);
   EXPECT_EQ(ready.waits, 0);
-  EXPECT_GT(ready.iterations, lag.iterations);
+  EXPECT_GT(ready.async_factorizations, 0);
   EXPECT_LT(diff(ready, sync), 1e-6);
 }
 

@@ -19,10 +19,11 @@ struct AdaptivitySettings {
   double tolerance = 0.0;   // relative estimate eta / |sigma_h|_E below which nothing is refined
   int every_steps = 1;      // estimate (and adapt) every this many steps
   // Dynamic steps: a changed mesh's tissue body (pattern, factor, compliance columns) is built
-  // on a background thread, and the simulation moves to it this many steps after the
-  // decision, at a step boundary (0: at once, on the stepping thread). Doc: method.md,
-  // "Refinement and coarsening", deferred mesh changes.
-  int rebuild_lag = 0;
+  // on a background thread, and the simulation moves to it this long after the decision
+  // [s of simulated time, rounded to whole steps of the current dt, at least one], at a step
+  // boundary (0: at once, on the stepping thread). Doc: method.md, "Refinement and
+  // coarsening", deferred mesh changes.
+  double rebuild_delay = 0;
   bool coarsen = false;
   double theta_coarsen = 0.05;  // merge 8 children when sqrt(sum eta_c^2) < theta_coarsen max eta ...
   int coarsen_after = 3;        // ... at this many consecutive estimates (hysteresis)

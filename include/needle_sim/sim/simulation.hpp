@@ -86,7 +86,7 @@ class Simulation {
   // mesh change is not in use until its switch).
   std::vector<int> elementsPerLevel() const;
   int hangingNodes() const { return hanging_nodes_; }
-  // A mesh change decided and being built in the background (adaptivity.rebuild_lag).
+  // A mesh change decided and being built in the background (adaptivity.rebuild_delay).
   bool rebuildPending() const { return pending_rebuild_ != nullptr; }
   // Deferred mesh changes so far, and those whose switch had to wait for the build.
   long deferredRebuilds() const { return deferred_rebuilds_; }
@@ -150,7 +150,7 @@ class Simulation {
 
  private:
   void checkState() const;
-  // defer: a change may be built in the background (dynamic steps with rebuild_lag > 0).
+  // defer: a change may be built in the background (dynamic steps with a rebuild_delay).
   void adaptMesh(bool defer = false);
   // One estimate + mark + refine/coarsen pass with the scene's estimator (spr or goal).
   AdaptationResult adaptationPass();
@@ -160,13 +160,15 @@ class Simulation {
   // probes and constraint points re-embedded; without persistent_loads (during the
   // pre-step) the brain-shift loads are left out and the velocities zeroed.
   void rebuildTissue(bool persistent_loads = true);
-  // A deferred mesh change (adaptivity.rebuild_lag): the new body built on a background
-  // thread from this step's state, switched to rebuild_lag steps later (finishRebuild, also
+  // A deferred mesh change (adaptivity.rebuild_delay): the new body built on a background
+  // thread from this step's state, switched to rebuildLagSteps() later (finishRebuild, also
   // before any other adaptation pass).
   void startRebuild();
   void finishRebuild();
   // The levels and hanging nodes of the adaptive mesh now in use.
   void noteActiveMesh();
+  // rebuild_delay in steps of the current dt (0: synchronous).
+  long rebuildLagSteps() const;
   // The brain-shift pre-step, with its solve/adapt passes on an adaptive mesh.
   void preStep();
   // Re-aims every needle at the brain-shift target's shifted position (brain_shift.replan).

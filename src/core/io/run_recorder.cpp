@@ -337,7 +337,7 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                        {"tissue_dofs_max", max_tissue_dofs_},
                        {"elements_per_level", sim_.elementsPerLevel()},
                        {"hanging_nodes", sim_.hangingNodes()},
-                       {"rebuild_lag", a->settings().rebuild_lag},
+                       {"rebuild_delay_s", a->settings().rebuild_delay},
                        {"deferred_mesh_changes", sim_.deferredRebuilds()},
                        {"rebuild_waits", sim_.rebuildWaits()},
                        {"mesh_changes", mesh_changes_},

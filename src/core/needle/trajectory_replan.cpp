@@ -11,11 +11,18 @@ TrajectoryReplan replanFor(const NeedleParameters& n, const Vec3& shift) {
     r.planned_tip = r.entry;
     return r;
   }
-  const NeedleMotionKey& last = n.motion.back();
-  r.planned_tip = last.position + n.length * last.direction.normalized();
+  // The planned final tip: the deepest keyframe (a cannula is withdrawn after it).
+  double deepest = -1;
+  for (const NeedleMotionKey& k : n.motion) {
+    const Vec3 tip = k.position + n.length * k.direction.normalized();
+    if ((tip - r.entry).norm() > deepest) {
+      deepest = (tip - r.entry).norm();
+      r.planned_tip = tip;
+    }
+  }
   const Vec3 from = r.planned_tip - r.entry, to = from + shift;
   if (!(from.norm() > 1e-9 * n.length))
-    throw std::invalid_argument("needle '" + n.name + "' ends where its tip starts: no trajectory to re-aim");
+    throw std::invalid_argument("needle '" + n.name + "' never leaves its entry point: no trajectory to re-aim");
   r.rotation = Eigen::Quaterniond::FromTwoVectors(from, to);
   r.scale = to.norm() / from.norm();
   return r;

@@ -341,7 +341,7 @@ void readAdaptivity(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "adaptivity";
   if (!n.IsMap()) r.fail(p, "must be a map {estimator, marking, theta, max_level, ...}");
   r.checkKeys(n, p, {"estimator", "goal", "marking", "theta", "max_level", "max_dofs", "tolerance", "every_steps",
-                     "coarsen", "rebuild_lag"});
+                     "coarsen", "rebuild_delay"});
   AdaptivitySettings a;
   if (auto v = r.child(n, p, "estimator", false)) {
     const std::string e = r.string(v, p + ".estimator");
@@ -380,7 +380,11 @@ void readAdaptivity(const SceneReader& r, const YAML::Node& n, Scene& s) {
   integerIn(n, p, "max_level", 0, 6, a.max_level);
   integerIn(n, p, "max_dofs", 0, 100000000, a.max_dofs);
   integerIn(n, p, "every_steps", 1, 1000000000, a.every_steps);
-  integerIn(n, p, "rebuild_lag", 0, 1000, a.rebuild_lag);
+  if (auto v = r.child(n, p, "rebuild_delay", false)) {
+    a.rebuild_delay = r.number(v, p + ".rebuild_delay");
+    if (!(a.rebuild_delay >= 0 && a.rebuild_delay <= 10))
+      r.fail(p + ".rebuild_delay", "must be in [0, 10] s, got " + SceneReader::fmt(a.rebuild_delay));
+  }
   if (auto v = r.child(n, p, "tolerance", false)) {
     a.tolerance = r.number(v, p + ".tolerance");
     if (a.tolerance < 0) r.fail(p + ".tolerance", "must be >= 0, got " + SceneReader::fmt(a.tolerance));

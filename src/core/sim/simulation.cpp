@@ -514,7 +514,7 @@ void Simulation::startRebuild() {
   // embedding), on a background thread, from values it owns.
   const auto& act = adaptation_->active();
   auto pending = std::make_unique<PendingRebuild>();
-  pending->switch_step = step_ + scene_.adaptivity->rebuild_lag;
+  pending->switch_step = step_ + rebuildLagSteps();
   pending->levels = act.level;
   pending->hanging = act.numHanging();
   HexMesh mesh = act.mesh;
@@ -553,6 +553,11 @@ void Simulation::startRebuild() {
           .share();
   pending_rebuild_ = std::move(pending);
   ++deferred_rebuilds_;
+}
+
+long Simulation::rebuildLagSteps() const {
+  const double d = scene_.adaptivity ? scene_.adaptivity->rebuild_delay : 0.0;
+  return d > 0 ? std::max(1L, std::lround(d / dt_)) : 0;
 }
 
 void Simulation::finishRebuild() {
@@ -603,7 +608,7 @@ void Simulation::adaptMesh(bool defer) {
   const auto t1 = steadyNow();
   const AdaptationResult r = adaptationPass();
   const auto t2 = steadyNow();
-  const bool deferred = r.changed && defer && scene_.adaptivity->rebuild_lag > 0;
+  const bool deferred = r.changed && defer && rebuildLagSteps() > 0;
   if (deferred) startRebuild();
   else if (r.changed) rebuildTissue();
   const auto t3 = steadyNow();
