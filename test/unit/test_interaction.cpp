@@ -150,6 +150,30 @@ TEST(Interaction, ABuckledTipSlidesOnTheSurfaceAndNeverPassesThroughIt) {
   EXPECT_LT(deepest, umax + 1e-4) << "the tip entered the tissue unpunctured";
 }
 
+// Pulled back 2 mm and pushed on: the tip leaves its channel's end (withdrawing, shaft points
+// only), slides back along its own channel, and past the end it cuts again (a tip constraint
+// there, new shaft points beyond the old path), instead of passing through uncut tissue.
+TEST(Interaction, ReinsertedPastItsPathEndTheTipCutsOn) {
+  Simulation sim(phantom({"needle.motion=[{t: 0, advance: 0}, {t: 1.3, advance: 0.013}, {t: 1.5, advance: 0.011}, "
+                          "{t: 2.1, advance: 0.017}]",
+                          "time.duration=2.1"}));
+  bool withdrew = false, cut_again = false;
+  int points_at_turn = 0;
+  for (long k = 0; k < sim.scene().numSteps(); ++k) {
+    sim.step();
+    const auto s = sim.interaction()->state(0);
+    if (sim.time() <= 1.3 + 1e-9) points_at_turn = sim.interaction()->activePoints(0);
+    if (s == InsertionState::Withdrawing) withdrew = true;
+    if (withdrew && s == InsertionState::Inserted && find(sim, ConstraintKind::Tip)) cut_again = true;
+  }
+  EXPECT_TRUE(withdrew);
+  EXPECT_TRUE(cut_again);
+  EXPECT_EQ(sim.interaction()->state(0), InsertionState::Inserted);
+  ASSERT_NE(find(sim, ConstraintKind::Tip), nullptr);
+  // Shaft points every millimetre: about four more than at the turn (13 -> 17 mm).
+  EXPECT_GE(sim.interaction()->activePoints(0), points_at_turn + 3);
+}
+
 // Above the strength: puncture, at a force equal to the threshold within one step's increase.
 TEST(Interaction, PunctureHappensAtTheThreshold) {
   Simulation sim(phantom({"time.duration=0.5"}));

@@ -88,6 +88,11 @@ class NeedleTissueInteraction {
     Vec3 next_shaft_rest = Vec3::Zero();  // where the next shaft point goes (rest space)
     bool has_path = false;
     bool sheathed = false;  // the tip is inside another needle's lumen (electrode in cannula)
+    // Withdrawing: the end of the cut path (the tip's last anchor). Pushed past it again, the
+    // tip meets uncut tissue there and cuts on (a back-and-forth motion, or the tissue
+    // relaxing ahead of the tip).
+    EmbeddedPoint path_end;
+    bool has_end = false;
   };
   bool locateCurrent(const Vec3& p, int hint, EmbeddedPoint& out) const;
   // Appends to `out` (not to constraints_, which the caller may be iterating).

@@ -81,6 +81,12 @@ void NeedleTissueInteraction::rebind(TissueBody& tissue, const EmbeddedSurface* 
       throw std::logic_error("re-embedding a constraint point: rest position outside the new mesh");
     c->tissue = ep;
   }
+  for (Track& tr : tracks_)
+    if (tr.has_end) {
+      EmbeddedPoint ep;
+      if (rest_locator_->locate(tr.path_end.rest, ep) || rest_locator_->locateNearest(tr.path_end.rest, ep)) tr.path_end = ep;
+      else tr.has_end = false;
+    }
 }
 
 double NeedleTissueInteraction::grip(int n) const {
@@ -358,6 +364,8 @@ void NeedleTissueInteraction::afterCommit() {
       } else if (advance < -1e-3 * settings_.shaft_spacing) {
         // Pulled back: the tip slides out of its channel; only the shaft points hold it.
         tr.state = InsertionState::Withdrawing;
+        tr.path_end = c.tissue;
+        tr.has_end = true;
         it = constraints_.erase(it);
         continue;
       } else if (tr.state == InsertionState::Punctured) {
@@ -365,6 +373,21 @@ void NeedleTissueInteraction::afterCommit() {
       }
     }
     ++it;
+  }
+  // A withdrawing needle pushed past the end of its cut path cuts on from there.
+  for (size_t n = 0; n < needles_.size(); ++n) {
+    Track& tr = tracks_[n];
+    if (tr.state != InsertionState::Withdrawing || !tr.has_end) continue;
+    const NeedleBody& nd = *needles_[n];
+    const Vec3 tip = nd.tipPosition();
+    const Vec3 axis = (tip - nd.state().p[nd.beam().numNodes() - 2]).normalized();
+    if (axis.dot(tip - tr.path_end.interpolate(mesh, x)) <= 0) continue;
+    auto t = std::make_unique<TipConstraint>(settings_.friction, settings_.cutting_force);
+    t->tissue = tr.path_end;
+    t->needle = static_cast<int>(n);
+    created.push_back(std::move(t));
+    tr.state = InsertionState::Inserted;
+    tr.has_end = false;
   }
   // A needle whose tip comes out of its sheath inside the tissue is tied there.
   for (size_t n = 0; n < needles_.size(); ++n) {
@@ -391,8 +414,10 @@ void NeedleTissueInteraction::afterCommit() {
   for (size_t n = 0; n < needles_.size(); ++n) {
     Track& tr = tracks_[n];
     if (tr.has_path && activePoints(static_cast<int>(n)) == 0 &&
-        (tr.state == InsertionState::Withdrawing || tr.state == InsertionState::Inserted))
+        (tr.state == InsertionState::Withdrawing || tr.state == InsertionState::Inserted)) {
       tr.state = InsertionState::Out;
+      tr.has_end = false;  // out of the tissue: a new insertion punctures again
+    }
   }
 }
 
