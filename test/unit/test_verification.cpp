@@ -1,6 +1,8 @@
 // Verification against known answers (doc/verification.md): DOF counts of the paper's phantom
 // meshes, the hex8 cantilever, Cook's membrane, and a damped free oscillation settling on
 // the static solution. Scenes are the shipped files, so these tests also guard them.
+#include <chrono>
+#include <thread>
 #include <gtest/gtest.h>
 
 #include "needle_sim/solver/system_solver.hpp"
@@ -152,7 +154,9 @@ TEST(PhantomDynamics, AsyncFactorRefreshGivesTheSynchronousTrajectory) {
     std::vector<Vec3> probes;
     long sync_factorizations = 0, async_factorizations = 0, waits = 0, iterations = 0;
   };
-  auto run = [&](bool async, int lag, double delay_ms) {
+  // pace_ms: a sleep after each step, as a control loop's period (without it the 100 steps of
+  // this small scene can end before a delayed factor is ready, and nothing is swapped).
+  auto run = [&](bool async, int lag, double delay_ms, double pace_ms = 0) {
     SystemSolver::setRefreshDelayForTesting(delay_ms);
     Simulation sim(loadScene(scenePath("phantom_8x4x4.yaml"),
                              {"time.duration=0.1", "tissue.gravity=[0,0,-9810]",
@@ -166,6 +170,7 @@ TEST(PhantomDynamics, AsyncFactorRefreshGivesTheSynchronousTrajectory) {
       r.waits += s.factor_waits;
       r.iterations += s.linear_iterations;
       for (int i = 0; i < sim.numProbes(); ++i) r.probes.push_back(sim.probeDisplacement(i));
+      if (pace_ms > 0) std::this_thread::sleep_for(std::chrono::duration<double, std::milli>(pace_ms));
     }
     SystemSolver::setRefreshDelayForTesting(0);
     return r;
@@ -178,7 +183,7 @@ TEST(PhantomDynamics, AsyncFactorRefreshGivesTheSynchronousTrajectory) {
     }
     return d / scale;
   };
-  const Run sync = run(false, 4, 0), lag = run(true, 4, 0), late = run(true, 4, 20), ready = run(true, 0, 20);
+  const Run sync = run(false, 4, 0), lag = run(true, 4, 0), late = run(true, 4, 20), ready = run(true, 0, 5, 1);
   ASSERT_GT(sync.sync_factorizations, 3);  // refreshes happen in this swing
   EXPECT_EQ(sync.async_factorizations, 0);
   // Async: no factorisation on the stepping thread (the first is made when the scene loads),

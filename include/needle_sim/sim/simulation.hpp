@@ -184,8 +184,11 @@ class Simulation {
                            const std::string& key, const std::string& what) const;
   // Volume fractions of the active mesh's elements (immersed geometry), cached per cell.
   void setFractions(HexMesh& mesh, const std::vector<int>& cells);
-  // Loads that outlive a mesh change: the brain shift's gravity and skull reactions.
+  // Loads that outlive a mesh change: the brain shift's gravity and skull reactions, and the
+  // skull's support springs (applyPersistentLoads: on the tissue in use; persistentLoads: on
+  // a body being built, from any thread: it reads the frozen brain-shift state only).
   void applyPersistentLoads();
+  static void persistentLoads(const BrainShift* shift, double load_scale, TissueBody& body, const EmbeddedSurface* organ);
 
   const Scene scene_;
   // Run-time state.
@@ -212,8 +215,9 @@ class Simulation {
   VecX reference_;  // the shifted state (current mesh): the estimate's reference, or empty
   std::unique_ptr<MeshAdaptation> adaptation_;
   struct PreparedTissue {
-    std::unique_ptr<TissueBody> tissue;
+    std::unique_ptr<TissueBody> tissue;  // with the brain shift's loads and support applied
     std::unique_ptr<EmbeddedSurface> organ;
+    std::unique_ptr<SprEstimator> estimator;  // its per-mesh patch fits made
   };
   struct PendingRebuild {
     std::shared_future<std::shared_ptr<PreparedTissue>> job;

@@ -122,6 +122,10 @@ class SystemSolver {
     async_ = on;
   }
   bool async() const { return async_; }
+  // While held, a stale factor is not refreshed (CG goes on with it; a solve that cannot
+  // converge still refactors): a body about to be replaced by a deferred mesh change leaves
+  // the second core to the new body's build.
+  void holdRefresh(bool on) { hold_ = on; }
   // Tests: every background refresh takes at least this long (a factor that finishes late).
   static void setRefreshDelayForTesting(double ms);
 
@@ -156,6 +160,7 @@ class SystemSolver {
   bool stale_ = true;          // refresh the factor (in the background if async)
   bool must_refactor_ = false;  // refactorise before this call's solve (the matrix changed)
   bool async_ = true;
+  bool hold_ = false;
   long calls_ = 0, calls_since_factor_ = 0;
   std::unique_ptr<Refresh> pending_;
   std::unique_ptr<Refresh> spare_;  // a finished refresh's buffers, reused by the next

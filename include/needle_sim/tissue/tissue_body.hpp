@@ -97,6 +97,9 @@ class TissueBody {
   // and the compliance columns of the free DOFs of `elements` (where the constraint points
   // are), so that its first steps need neither.
   void prepareForSteps(double h, const std::vector<int>& elements);
+  // No background factor refresh while on (SystemSolver::holdRefresh): this body is about to
+  // be replaced by one being built.
+  void holdFactorRefresh(bool on) { solver_->holdRefresh(on); }
   void setState(const VecX& x, const VecX& v);
   // Adds nodal forces (3n) to the constant external loads (e.g. a manufactured body force).
   void addExternalForce(const VecX& f) { f_ext_ += f; }

@@ -87,6 +87,8 @@ Simulation::Simulation(const Scene& scene, const Options& options) : scene_(scen
   // The first dynamic step's factor is part of loading the scene, as a mesh change's is part
   // of its background build: step 1 costs what any step does.
   if (scene.solver.mode == SolverSettings::Mode::Dynamic) tissue_->prepareForSteps(dt_, {});
+  // So are the SPR patch fits of the first mesh (30 ms on the DBS mesh at the first pass).
+  if (adaptation_ && !estimator_) estimator_ = std::make_unique<SprEstimator>(tissue_->model());
 }
 
 namespace {
@@ -361,12 +363,18 @@ Vec3 Simulation::targetVelocity(int i) const {
   return targets_[i].point.interpolate(tissue_->mesh(), tissue_->velocities());
 }
 
-void Simulation::applyPersistentLoads() {
-  if (!shift_) return;
-  VecX f = shift_result_.load_scale * shift_->unitLoad(*tissue_);
-  if (organ_) f += shift_->skullLoad(*tissue_, *organ_);
-  tissue_->addExternalForce(f);
-  applySupport();
+void Simulation::applyPersistentLoads() { persistentLoads(shift_.get(), shift_result_.load_scale, *tissue_, organ_.get()); }
+
+void Simulation::persistentLoads(const BrainShift* shift, double load_scale, TissueBody& body,
+                                 const EmbeddedSurface* organ) {
+  if (!shift) return;
+  VecX f = load_scale * shift->unitLoad(body);
+  if (organ) f += shift->skullLoad(body, *organ);
+  body.addExternalForce(f);
+  if (organ && shift->hasSupport()) {
+    body.setSupport(shift->supportStiffness(*organ));
+    body.addExternalForce(shift->supportAnchorLoad(body, *organ));
+  }
 }
 
 std::vector<int> Simulation::elementLevels() const {
@@ -535,10 +543,13 @@ void Simulation::startRebuild() {
   auto hanging = act.hanging;
   const Scene* scene = &scene_;
   const double h = dt_;
+  const BrainShift* shift = shift_.get();  // frozen after the pre-step: read only
+  const double load_scale = shift_result_.load_scale;
+  tissue_->holdFactorRefresh(true);  // the build gets the second core (the DBS switch waited for it)
   pending->job =
       std::async(std::launch::async,
-                 [scene, h, mesh = std::move(mesh), hanging = std::move(hanging), x = std::move(x), v = std::move(v),
-                  points = std::move(points)]() mutable {
+                 [scene, h, shift, load_scale, mesh = std::move(mesh), hanging = std::move(hanging), x = std::move(x),
+                  v = std::move(v), points = std::move(points)]() mutable {
                    lowerThisThreadPriority();
                    auto p = std::make_shared<PreparedTissue>();
                    p->tissue = std::make_unique<TissueBody>(std::move(mesh), scene->tissue, scene->solver, scene->file, hanging);
@@ -546,6 +557,7 @@ void Simulation::startRebuild() {
                    const HexMesh& m = p->tissue->mesh();
                    if (scene->tissue.geometry.kind == TissueGeometry::Kind::Surface)
                      p->organ = std::make_unique<EmbeddedSurface>(scene->tissue.geometry.surface, m);
+                   persistentLoads(shift, load_scale, *p->tissue, p->organ.get());
                    PointLocator locator(m);
                    std::vector<int> elements;
                    for (const Vec3& r : points) {
@@ -555,6 +567,7 @@ void Simulation::startRebuild() {
                    std::sort(elements.begin(), elements.end());
                    elements.erase(std::unique(elements.begin(), elements.end()), elements.end());
                    p->tissue->prepareForSteps(h, elements);
+                   p->estimator = std::make_unique<SprEstimator>(p->tissue->model());
                    const double delay = g_rebuild_delay_ms;
                    if (delay > 0) std::this_thread::sleep_for(std::chrono::duration<double, std::milli>(delay));
                    return p;
@@ -583,7 +596,7 @@ void Simulation::finishRebuild() {
   tissue_ = std::move(p->tissue);
   tissue_->setState(x, v);
   if (immersed_) organ_ = std::move(p->organ);
-  applyPersistentLoads();
+  estimator_ = std::move(p->estimator);  // (its loads and support were applied in the build)
   embedProbes();
   embedTargets();
   if (interaction_) interaction_->rebind(*tissue_, organ_.get());

@@ -36,6 +36,7 @@ SystemSolver::SystemSolver(const SystemSolver& o, const CorotationalHexModel& mo
       stale_(o.stale_),
       must_refactor_(o.must_refactor_),
       async_(o.async_),
+      hold_(o.hold_),
       calls_(o.calls_),
       calls_since_factor_(o.calls_since_factor_) {
   if (o.pending_) {
@@ -113,10 +114,6 @@ void SystemSolver::startRefresh(const VecX& mass_free, double c_m, double c_k, L
   // a few hundred kilobytes. The thread reads the model's element references and the
   // assembler's scatter map, which do not change while this solver lives.
   std::unique_ptr<Refresh> r = spare_ ? std::move(spare_) : std::make_unique<Refresh>();
-  if (!r->factor) {
-    r->factor = std::make_unique<CholmodSolver>(*chol_);  // the analysis (and a factor, overwritten)
-    r->matrix = assembler_.matrix();
-  }
   r->rotations.resize(model_.numElements());
   for (int e = 0; e < model_.numElements(); ++e) r->rotations[e] = model_.rotation(e);
   r->mass_free = mass_free;
@@ -127,9 +124,18 @@ void SystemSolver::startRefresh(const VecX& mass_free, double c_m, double c_k, L
   Refresh* job = r.get();
   const CorotationalHexModel* model = &model_;
   const SymmetricAssembler* assembler = &assembler_;
-  r->done = std::async(std::launch::async, [job, model, assembler] {
+  const CholmodSolver* in_use = chol_.get();
+  r->done = std::async(std::launch::async, [job, model, assembler, in_use] {
               lowerThisThreadPriority();
               const auto t0 = steadyNow();
+              // The first refresh copies the factor in use (its analysis; the values are
+              // overwritten) and the matrix's pattern here: on the stepping thread the copy
+              // cost 20-30 ms on the DBS mesh. Both are only read meanwhile: the stepping
+              // thread changes them in refactor() alone, which first waits for this job.
+              if (!job->factor) {
+                job->factor = std::make_unique<CholmodSolver>(*in_use);
+                job->matrix = assembler->matrix();
+              }
               double* v = job->matrix.valuePtr();
               std::fill(v, v + job->matrix.nonZeros(), 0.0);
               hex8::Mat24 Ke;
@@ -186,7 +192,7 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
   if (direct || must_refactor_ || !chol_->factored() ||
       (settings_.refactor_every > 0 && calls_since_factor_ >= settings_.refactor_every)) {
     refactor(mass_free, c_m, c_k, st);
-  } else if (stale_ && !pending_) {
+  } else if (stale_ && !pending_ && !hold_) {
     if (async_) startRefresh(mass_free, c_m, c_k, st);
     else refactor(mass_free, c_m, c_k, st);
   }
