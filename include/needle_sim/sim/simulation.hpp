@@ -174,8 +174,10 @@ class Simulation {
   // Re-aims every needle at the brain-shift target's shifted position (brain_shift.replan).
   void replanNeedles();
   static constexpr int kMaxShiftPasses = 6;
-  // The skull support springs of the brain shift on the current mesh.
+  // The skull support springs of the brain shift on the current mesh (support: on any body,
+  // from any thread).
   void applySupport();
+  static void support(const BrainShift* shift, TissueBody& body, const EmbeddedSurface* organ);
   void embedProbes();
   void embedTargets();
   // The material point at rest position p; throws InputError(file, key) naming `what` when

@@ -271,10 +271,12 @@ void Simulation::preStep() {
   shift_result_ = total;
 }
 
-void Simulation::applySupport() {
-  if (!shift_ || !organ_ || !shift_->hasSupport()) return;
-  tissue_->setSupport(shift_->supportStiffness(*organ_));
-  tissue_->addExternalForce(shift_->supportAnchorLoad(*tissue_, *organ_));
+void Simulation::applySupport() { support(shift_.get(), *tissue_, organ_.get()); }
+
+void Simulation::support(const BrainShift* shift, TissueBody& body, const EmbeddedSurface* organ) {
+  if (!shift || !organ || !shift->hasSupport()) return;
+  body.setSupport(shift->supportStiffness(*organ));
+  body.addExternalForce(shift->supportAnchorLoad(body, *organ));
 }
 
 void Simulation::setFractions(HexMesh& mesh, const std::vector<int>& cells) {
@@ -371,10 +373,7 @@ void Simulation::persistentLoads(const BrainShift* shift, double load_scale, Tis
   VecX f = load_scale * shift->unitLoad(body);
   if (organ) f += shift->skullLoad(body, *organ);
   body.addExternalForce(f);
-  if (organ && shift->hasSupport()) {
-    body.setSupport(shift->supportStiffness(*organ));
-    body.addExternalForce(shift->supportAnchorLoad(body, *organ));
-  }
+  support(shift, body, organ);
 }
 
 std::vector<int> Simulation::elementLevels() const {
