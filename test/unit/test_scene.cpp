@@ -147,3 +147,27 @@ TEST(Scene, ExtendsIsTheBaseWithTheDerivedKeysMergedIn) {
   const Scene c = loadScene(kSrc + "/config/scenes/phantom_insertion_16x8x8.yaml", {"tissue.grid.cells=[4,2,2]"});
   EXPECT_EQ(c.tissue.cells, Vec3i(4, 2, 2));
 }
+
+// Duty-cycled spinning (needle/duty_cycled_spin.hpp): read per motion key, bad values name
+// their key.
+TEST(Scene, SpinIsReadAndBadSpinNamesItsKey) {
+  const std::string insertion = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml";
+  const Scene s = loadScene(insertion, {"needle.motion.0.spin={rate: 6.283, duty: 0.25}"});
+  EXPECT_EQ(s.needles[0].motion[0].spin_rate, 6.283);
+  EXPECT_EQ(s.needles[0].motion[0].spin_duty, 0.25);
+  const std::vector<std::pair<std::string, std::string>> bad = {
+      {"needle.motion.0.spin={rate: 6.283, duty: 1.5}", "needle.motion[0].spin.duty"},
+      {"needle.motion.0.spin={rate: 6.283, duty: -0.5}", "needle.motion[0].spin.duty"},
+      {"needle.motion.0.spin={rate: 0, duty: 0.5}", "needle.motion[0].spin.rate"},
+      {"needle.motion.0.spin={rate: 1, duty: 0.5, phase: 2}", "needle.motion[0].spin.phase"},
+      {"needle.motion.3.spin={rate: 1, duty: 0.5}", "needle.motion[3].spin"}};
+  for (const auto& [o, k] : bad) {
+    SCOPED_TRACE(o);
+    try {
+      loadScene(insertion, {o});
+      FAIL();
+    } catch (const InputError& e) {
+      EXPECT_EQ(e.key(), k) << e.what();
+    }
+  }
+}

@@ -75,6 +75,10 @@ class NeedleTissueInteraction {
   const std::vector<std::unique_ptr<ContactConstraint>>& constraints() const { return constraints_; }
   // Normal force at the moment of the last puncture of a needle (NaN before any).
   double punctureForce(int needle) const { return tracks_[needle].puncture_force; }
+  // The centre line of the needle's cut path in rest (material) space, from the puncture
+  // point to the tip's last anchor, a point every quarter shaft spacing (empty before a
+  // puncture; a new puncture starts a new one). needle/tip_path.hpp measures it.
+  const std::vector<Vec3>& cutPath(int needle) const { return tracks_[needle].path; }
   // Total constraint force on a needle, assembled on its nodes with the rows' weights, and
   // on the tissue (all nodes, prescribed ones included), at the last solve.
   Vec3 forceOnNeedle(int needle) const;
@@ -93,7 +97,9 @@ class NeedleTissueInteraction {
     // relaxing ahead of the tip).
     EmbeddedPoint path_end;
     bool has_end = false;
+    std::vector<Vec3> path;  // cutPath()
   };
+  void extendPath(int n, const Vec3& rest);
   bool locateCurrent(const Vec3& p, int hint, EmbeddedPoint& out) const;
   // Appends to `out` (not to constraints_, which the caller may be iterating).
   void layShaftPoints(int n, const EmbeddedPoint& upto, std::vector<std::unique_ptr<ContactConstraint>>& out);

@@ -13,6 +13,11 @@ struct NeedleMotionKey {
   Vec3 position = Vec3::Zero();
   Vec3 direction = Vec3::UnitX();
   double roll = 0;
+  // Duty-cycled spinning over the segment from this key to the next (Minhas et al. 2007;
+  // needle/duty_cycled_spin.hpp): a fraction spin_duty of the segment's time spent turning
+  // at spin_rate [rad/s], in whole turns. 0: no spinning.
+  double spin_rate = 0;
+  double spin_duty = 0;
 };
 
 // A needle (or cannula, electrode): a corotational beam whose base follows `motion`.

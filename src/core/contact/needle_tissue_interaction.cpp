@@ -89,6 +89,13 @@ void NeedleTissueInteraction::rebind(TissueBody& tissue, const EmbeddedSurface* 
     }
 }
 
+void NeedleTissueInteraction::extendPath(int n, const Vec3& rest) {
+  // A point every quarter shaft spacing: enough to fit the path's curvature, few enough to
+  // publish.
+  std::vector<Vec3>& path = tracks_[n].path;
+  if (path.empty() || (rest - path.back()).norm() >= 0.25 * settings_.shaft_spacing) path.push_back(rest);
+}
+
 double NeedleTissueInteraction::grip(int n) const {
   // The normal force of the radial pressure over one shaft point's share of the path.
   return 2 * M_PI * needles_[n]->beam().section().outer_radius * settings_.grip_pressure * settings_.shaft_spacing;
@@ -329,6 +336,8 @@ void NeedleTissueInteraction::afterCommit() {
         t->tissue = c.tissue;
         t->needle = c.needle;
         tr.next_shaft_rest = c.tissue.rest;
+        tr.path.clear();
+        extendPath(c.needle, c.tissue.rest);
         tr.has_path = true;
         tr.state = InsertionState::Punctured;
         created.push_back(std::move(t));
@@ -354,6 +363,7 @@ void NeedleTissueInteraction::afterCommit() {
         if (locateCurrent(tip, c.tissue.element, anchor)) {
           layShaftPoints(c.needle, anchor, created);
           c.tissue = anchor;
+          extendPath(c.needle, anchor.rest);
           tr.state = InsertionState::Inserted;
         } else {
           // The tip left the tissue mesh (through the far side): keep the path, drop the tip.
@@ -406,6 +416,8 @@ void NeedleTissueInteraction::afterCommit() {
         tr.state = InsertionState::Inserted;
         tr.has_path = true;
         tr.next_shaft_rest = anchor.rest;
+        tr.path.clear();
+        extendPath(static_cast<int>(n), anchor.rest);
       }
     }
     tr.sheathed = sheathed;

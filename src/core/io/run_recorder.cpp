@@ -10,6 +10,7 @@
 #include <stdexcept>
 
 #include "needle_sim/io/vtu_writer.hpp"
+#include "needle_sim/needle/tip_path.hpp"
 
 namespace needle_sim {
 
@@ -285,6 +286,11 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
       needles[nd.name()]["constraints"] = in->activePoints(i);
       const double pf = in->punctureForce(i);
       needles[nd.name()]["puncture_force"] = std::isnan(pf) ? json(nullptr) : json(pf);
+      // The cut path in rest (material) space, from the puncture to the tip's last anchor.
+      json path = json::array();
+      for (const auto& p : in->cutPath(i)) path.push_back(arr(p));
+      needles[nd.name()]["cut_path"] = path;
+      needles[nd.name()]["cut_path_length"] = pathLength(in->cutPath(i));
     }
   }
   if (sim_.numNeedles()) j["needles"] = needles;

@@ -5,6 +5,7 @@
 
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/core/stopwatch.hpp"
+#include "needle_sim/needle/duty_cycled_spin.hpp"
 
 namespace needle_sim {
 
@@ -46,7 +47,8 @@ NeedleBody::NeedleBody(const NeedleParameters& n, const SolverSettings& solver)
       dofs_(basePrescribed(6 * (n.elements + 1))),
       assembler_(dofs_.numFree(), beamElementDofs(n.elements, dofs_)),
       chol_(Ordering::Amd) {
-  for (const auto& k : n.motion) trajectory_.add(k.t, BasePose{k.position, k.direction, k.roll});
+  for (const auto& k : expandDutyCycledSpin(n.motion, trajectory_.rest()))
+    trajectory_.add(k.t, BasePose{k.position, k.direction, k.roll});
   state_ = beam_.restState();
   v_ = VecX::Zero(beam_.numDofs());
   mass_ = beam_.lumpedMass();

@@ -257,7 +257,7 @@ NeedleScene readNeedle(const SceneReader& r, const YAML::Node& n, const std::str
     if (!m.IsSequence()) r.fail(p + ".motion", "must be a list of {t, advance} or {t, position, direction}");
     for (size_t i = 0; i < m.size(); ++i) {
       const std::string q = p + ".motion[" + std::to_string(i) + "]";
-      r.checkKeys(m[i], q, {"t", "advance", "position", "direction", "roll"});
+      r.checkKeys(m[i], q, {"t", "advance", "position", "direction", "roll", "spin"});
       NeedleMotionKey k;
       k.t = r.number(r.child(m[i], q, "t", true), q + ".t");
       if (k.t < 0) r.fail(q + ".t", "must be >= 0");
@@ -276,6 +276,16 @@ NeedleScene readNeedle(const SceneReader& r, const YAML::Node& n, const std::str
       }
       k.roll = s.base_roll;
       if (auto v = r.child(m[i], q, "roll", false)) k.roll = r.number(v, q + ".roll");
+      if (auto sp = r.child(m[i], q, "spin", false)) {
+        // Duty-cycled spinning until the next key (needle/duty_cycled_spin.hpp).
+        r.checkKeys(sp, q + ".spin", {"rate", "duty"});
+        k.spin_rate = r.number(r.child(sp, q + ".spin", "rate", true), q + ".spin.rate");
+        k.spin_duty = r.number(r.child(sp, q + ".spin", "duty", true), q + ".spin.duty");
+        if (!(k.spin_duty >= 0 && k.spin_duty <= 1))
+          r.fail(q + ".spin.duty", "must be in [0, 1] (the fraction of the time spent spinning), got " + SceneReader::fmt(k.spin_duty));
+        if (!(k.spin_rate > 0)) r.fail(q + ".spin.rate", "must be > 0 [rad/s], got " + SceneReader::fmt(k.spin_rate));
+        if (i + 1 == m.size()) r.fail(q + ".spin", "spins until the next key, but this is the last key");
+      }
       s.motion.push_back(k);
     }
   }
