@@ -26,7 +26,8 @@ struct DisplayOutputs::Frame {
   std::vector<std::string> needles;
   std::vector<std::vector<Vec3>> node_p;  // per needle, per beam node
   std::vector<std::vector<Eigen::Quaterniond>> node_q;
-  std::vector<bool> path, marker;  // subscribed, per needle
+  std::vector<bool> path, tip_path, marker;  // subscribed, per needle
+  std::vector<std::vector<Vec3>> cut_path;  // per needle, where its cut path is now (when subscribed)
   std::vector<std::string> targets;
   std::vector<Vec3> target_x;
   std::vector<double> target_bound;  // per target, the error bound's radius (< 0: none)
@@ -43,6 +44,7 @@ DisplayOutputs::DisplayOutputs(ros::NodeHandle& pnh, const NodeParameters& p, co
   target_markers_pub_ = pnh.advertise<visualization_msgs::MarkerArray>("target/markers", 2);
   for (const auto& n : scene.needles) {
     path_pubs_.push_back(pnh.advertise<nav_msgs::Path>(n.name + "/path", 10));
+    tip_path_pubs_.push_back(pnh.advertise<nav_msgs::Path>(n.name + "/tip_path", 10));
     needle_marker_pubs_.push_back(pnh.advertise<visualization_msgs::Marker>(n.name + "/marker", 10));
     radius_.push_back(n.radius);
   }
@@ -77,6 +79,9 @@ void DisplayOutputs::publish(const Simulation& sim, const std::shared_ptr<const 
     f->node_q.push_back(std::move(q));
     f->path.push_back(path_pubs_[i].getNumSubscribers() > 0);
     f->marker.push_back(needle_marker_pubs_[i].getNumSubscribers() > 0);
+    f->tip_path.push_back(tip_path_pubs_[i].getNumSubscribers() > 0);
+    f->cut_path.emplace_back();
+    if (f->tip_path.back() && sim.interaction()) sim.interaction()->cutPathNow(i, f->cut_path.back());
   }
   if (sim.hasTissue() && target_size_ <= 0) {  // targets drawn at 1 % of the tissue's size, at least 1 mm
     const HexMesh& m = sim.tissue().mesh();
@@ -160,6 +165,21 @@ void DisplayOutputs::build(const Frame& f) {
         path.poses.push_back(ps);
       }
       path_pubs_[i].publish(path);
+    }
+    if (f.tip_path[i]) {
+      // The centre line of the cut path where it is now, from the puncture point to the tip's
+      // last anchor; each pose's x axis along the path (empty before a puncture).
+      nav_msgs::Path path;
+      path.header = header;
+      const std::vector<Vec3>& c = f.cut_path[i];
+      for (size_t k = 0; k < c.size(); ++k) {
+        const Vec3 d = c.size() < 2 ? Vec3::UnitX() : k + 1 < c.size() ? Vec3(c[k + 1] - c[k]) : Vec3(c[k] - c[k - 1]);
+        geometry_msgs::PoseStamped ps;
+        ps.header = header;
+        ps.pose = toPose(c[k], Eigen::Quaterniond::FromTwoVectors(Vec3::UnitX(), d));
+        path.poses.push_back(ps);
+      }
+      tip_path_pubs_[i].publish(path);
     }
     if (f.marker[i]) {  // the needle as a tube of its own diameter
       visualization_msgs::Marker m;

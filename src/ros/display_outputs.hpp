@@ -3,7 +3,8 @@
 // (~tissue/deformation PointCloud2 with x y z dx dy dz von_mises eta; ~tissue/surface, a
 // semi-transparent TRIANGLE_LIST coloured by |u| on a scale that changes slowly, with its
 // legend in ~tissue/legend), the error indicator per refinement level
-// (~tissue/error_markers), each needle (~<needle>/path, ~<needle>/marker), the targets
+// (~tissue/error_markers), each needle (~<needle>/path, ~<needle>/marker, and ~<needle>/tip_path,
+// the centre line of its cut path where it is now), the targets
 // (~target/markers), and the tf frames <needle>_tip, <needle>_base, target/<name>, target
 // (and ~parent_frame -> ~tissue_frame, static). Snapshots are taken on the stepping thread
 // (positions only); fields and messages are built on the output thread.
@@ -50,7 +51,7 @@ class DisplayOutputs {
   std::vector<double> radius_;
   double target_size_ = 0;  // set from the tissue's size on first use
   ros::Publisher cloud_pub_, surface_pub_, legend_pub_, error_pub_, target_markers_pub_;
-  std::vector<ros::Publisher> path_pubs_, needle_marker_pubs_;
+  std::vector<ros::Publisher> path_pubs_, tip_path_pubs_, needle_marker_pubs_;
   tf2_ros::TransformBroadcaster tf_;
   std::unique_ptr<tf2_ros::StaticTransformBroadcaster> static_tf_;
   SnapshotTaker snapshots_;

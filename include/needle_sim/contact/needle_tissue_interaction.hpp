@@ -79,6 +79,9 @@ class NeedleTissueInteraction {
   // point to the tip's last anchor, a point every quarter shaft spacing (empty before a
   // puncture; a new puncture starts a new one). needle/tip_path.hpp measures it.
   const std::vector<Vec3>& cutPath(int needle) const { return tracks_[needle].path; }
+  // The same path where its material points are now (the deformed tissue), in `out` (a point
+  // a rounding error outside the cells after a mesh change is taken in the nearest one).
+  void cutPathNow(int needle, std::vector<Vec3>& out) const;
   // Total constraint force on a needle, assembled on its nodes with the rows' weights, and
   // on the tissue (all nodes, prescribed ones included), at the last solve.
   Vec3 forceOnNeedle(int needle) const;

@@ -96,6 +96,16 @@ void NeedleTissueInteraction::extendPath(int n, const Vec3& rest) {
   if (path.empty() || (rest - path.back()).norm() >= 0.25 * settings_.shaft_spacing) path.push_back(rest);
 }
 
+void NeedleTissueInteraction::cutPathNow(int n, std::vector<Vec3>& out) const {
+  out.clear();
+  const HexMesh& mesh = tissue_->mesh();
+  const VecX& x = tissue_->positions();
+  for (const Vec3& r : tracks_[n].path) {
+    EmbeddedPoint ep;
+    if (rest_locator_->locate(r, ep) || rest_locator_->locateNearest(r, ep)) out.push_back(ep.interpolate(mesh, x));
+  }
+}
+
 double NeedleTissueInteraction::grip(int n) const {
   // The normal force of the radial pressure over one shaft point's share of the path.
   return 2 * M_PI * needles_[n]->beam().section().outer_radius * settings_.grip_pressure * settings_.shaft_spacing;
