@@ -35,6 +35,9 @@ def main():
     ap.add_argument("--speed", type=float, default=0.01, help="[m/s]")
     ap.add_argument("--hold", type=float, default=0.2, help="[s]")
     ap.add_argument("--frame", default="tissue")
+    ap.add_argument("--status-at-ends", action="store_true",
+                    help="read ~status only before and after the insertion (no 1 kHz status stream to the client: "
+                         "the largest step is then not seen)")
     args = ap.parse_args(rospy.myargv()[1:])
     rospy.init_node("node_deadlines", anonymous=True)
     lock = threading.Lock()
@@ -44,7 +47,7 @@ def main():
         with lock:
             last["m"] = m
 
-    rospy.Subscriber(args.node + "/status", SimStatus, on_status, queue_size=1)
+    sub = rospy.Subscriber(args.node + "/status", SimStatus, on_status, queue_size=1)
     pub = rospy.Publisher("/%s/%s/command_pose" % (args.node, args.needle), PoseStamped, queue_size=10)
     n = math.sqrt(sum(c * c for c in args.direction))
     d = [c / n for c in args.direction]
@@ -73,6 +76,8 @@ def main():
         rospy.sleep(0.01)
     with lock:
         m0 = last["m"]
+    if args.status_at_ends:
+        sub.unregister()
     rate = rospy.Rate(args.rate)
     t0 = rospy.Time.now()
     step_max = 0.0
@@ -81,9 +86,12 @@ def main():
         if t > total + 0.2:
             break
         pub.publish(pose_at(t))
-        with lock:
-            step_max = max(step_max, last["m"].step_ms)
+        if not args.status_at_ends:
+            with lock:
+                step_max = max(step_max, last["m"].step_ms)
         rate.sleep()
+    if args.status_at_ends:
+        last["m"] = rospy.wait_for_message(args.node + "/status", SimStatus)
     with lock:
         m1 = last["m"]
     steps = m1.step - m0.step if m1.step >= m0.step else m1.step

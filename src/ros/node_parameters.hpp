@@ -33,6 +33,10 @@ struct NodeParameters {
   double display_range_min = 1e-7;  // [m] the adaptive range never goes below this
   double output_period = 0.001;
   int blas_threads = 1;
+  // ~realtime_priority: SCHED_FIFO priority of the stepping thread (1-99; 0: the default
+  // scheduler). A control loop's simulator, like the loop itself, needs it to keep its
+  // deadlines on a loaded machine; without the privilege the node warns and runs on.
+  int realtime_priority = 0;
   double predict_dt = 0.01, predict_sample_period = 0.05;
   int predict_max_steps = 100000;
   double insert_speed = 0.005;          // [m/s] default speed of ~insert goals

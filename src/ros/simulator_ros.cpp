@@ -8,8 +8,13 @@
 #include <needle_sim/SimStatus.h>
 #include <needle_sim/TargetState.h>
 
+#include <pthread.h>
+#include <sched.h>
+
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <cstring>
 
 #include "conversions.hpp"
 #include "display_outputs.hpp"
@@ -74,8 +79,12 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   action_ = std::make_unique<InsertAction>(*this, pnh_, P.insert_speed);
   reconfigure_ = std::make_unique<LimitsReconfigure>(pnh_, *guard_, [this](double rate) { display_->setRate(rate); });
   if (P.target_error_period > 0) error_thread_ = std::thread(&SimulatorRos::errorLoop, this);
-  thread_ = std::thread(&SimulatorRos::worker, this);
-  if (!P.as_fast_as_possible) timer_ = nh_.createTimer(ros::Duration(scene_.dt), &SimulatorRos::onTimer, this);
+  // On the wall clock without tf commands the stepping thread keeps its own time; under
+  // /use_sim_time (a bag's clock) or with tf lookups each tick, the timer drives it.
+  self_paced_ = !P.as_fast_as_possible && !ros::Time::isSimTime() && base_frames_.empty();
+  thread_ = self_paced_ ? std::thread(&SimulatorRos::pacedWorker, this) : std::thread(&SimulatorRos::worker, this);
+  if (!P.as_fast_as_possible && !self_paced_)
+    timer_ = nh_.createTimer(ros::Duration(scene_.dt), &SimulatorRos::onTimer, this);
   ROS_INFO("needle_sim: scene '%s' (%s), %d DOFs, dt %g s, commands from %s, interface under %s", scene_.name.c_str(),
            P.scene_file.c_str(), sim_->numDofs(), scene_.dt, P.command_source.c_str(), pnh_.getNamespace().c_str());
 }
@@ -185,7 +194,21 @@ void SimulatorRos::onTimer(const ros::TimerEvent&) {
   wake_.notify_one();
 }
 
+void SimulatorRos::setStepperPriority() {
+  const int prio = params_->realtime_priority;
+  if (prio <= 0) return;
+  sched_param sp{};
+  sp.sched_priority = prio;
+  const int err = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
+  if (err != 0)
+    ROS_WARN("needle_sim: ~realtime_priority %d: cannot take SCHED_FIFO (%s); the stepping thread runs on the default "
+             "scheduler (grant CAP_SYS_NICE or an rtprio limit)", prio, std::strerror(err));
+  else
+    ROS_INFO("needle_sim: stepping thread on SCHED_FIFO priority %d", prio);
+}
+
 void SimulatorRos::worker() {
+  setStepperPriority();
   const bool as_fast = params_->as_fast_as_possible;
   for (;;) {
     {
@@ -197,6 +220,42 @@ void SimulatorRos::worker() {
     std::lock_guard<std::mutex> lk(sim_mutex_);
     applyCommands();
     stepOnce();
+  }
+}
+
+void SimulatorRos::pacedWorker() {
+  setStepperPriority();
+  for (;;) {
+    bool back = false;
+    {
+      std::unique_lock<std::mutex> lk(queue_mutex_);
+      if (stop_) return;
+      const ros::Time now = ros::Time::now();
+      if (origin_.isZero()) restartClock(now);
+      back = schedule_.tick((now - origin_).toSec()) < 0;
+    }
+    if (back) {  // the system clock was set back: as a bag loop under the timer, a restart
+      ROS_WARN("needle_sim: the clock went back: the scene restarts");
+      std_srvs::Trigger::Request req;
+      std_srvs::Trigger::Response res;
+      onReset(req, res);
+      continue;
+    }
+    // The due steps (several after a stall: back to back, each counted late if it is).
+    for (;;) {
+      {
+        std::lock_guard<std::mutex> lk(queue_mutex_);
+        if (stop_) return;
+        if (!schedule_.takeStep()) break;
+      }
+      std::lock_guard<std::mutex> lk(sim_mutex_);
+      applyCommands();
+      stepOnce();
+    }
+    std::unique_lock<std::mutex> lk(queue_mutex_);
+    if (origin_.isZero()) continue;  // restarted (~reset): the clock starts again now
+    const double wait = schedule_.nextDue() - (ros::Time::now() - origin_).toSec();
+    if (wait > 0) wake_.wait_for(lk, std::chrono::duration<double>(wait), [&] { return stop_; });
   }
 }
 

@@ -74,6 +74,11 @@ class SimulatorRos {
   void load();                  // (re)builds the simulation; sim_mutex_ held or not yet shared
   void onTimer(const ros::TimerEvent&);
   void worker();
+  // The wall-clock pace: the stepping thread sleeps until its next step is due, one wake per
+  // step (the timer and its hand-over cost a second wake and its latency).
+  void pacedWorker();
+  void setStepperPriority();  // ~realtime_priority
+  bool self_paced_ = false;
   void applyCommands();         // at a step boundary, sim_mutex_ held
   void stepOnce();              // sim_mutex_ held
   void publishStep(double ms);  // sim_mutex_ held

@@ -26,6 +26,8 @@ class RealtimeSchedule {
   // The stepping thread takes one due step (false: none is due).
   bool takeStep();
   long pending() const { return pending_; }
+  // Clock time at which the next step becomes due.
+  double nextDue() const { return start_ + (due_ + 1) * dt_; }
   // Step `step` (1-based since start) finished at clock time `now`.
   void stepDone(long step, double now);
   double dt() const { return dt_; }
