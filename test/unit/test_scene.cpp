@@ -150,6 +150,19 @@ TEST(Scene, ExtendsIsTheBaseWithTheDerivedKeysMergedIn) {
 
 // Duty-cycled spinning (needle/duty_cycled_spin.hpp): read per motion key, bad values name
 // their key.
+// Each override is refused (InputError) naming the given key.
+void expectRefusedNaming(const std::string& scene, const std::vector<std::pair<std::string, std::string>>& bad) {
+  for (const auto& [o, k] : bad) {
+    SCOPED_TRACE(o);
+    try {
+      loadScene(scene, {o});
+      FAIL();
+    } catch (const InputError& e) {
+      EXPECT_EQ(e.key(), k) << e.what();
+    }
+  }
+}
+
 TEST(Scene, SpinIsReadAndBadSpinNamesItsKey) {
   const std::string insertion = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml";
   const Scene s = loadScene(insertion, {"needle.motion.0.spin={rate: 6.283, duty: 0.25}"});
@@ -161,13 +174,36 @@ TEST(Scene, SpinIsReadAndBadSpinNamesItsKey) {
       {"needle.motion.0.spin={rate: 0, duty: 0.5}", "needle.motion[0].spin.rate"},
       {"needle.motion.0.spin={rate: 1, duty: 0.5, phase: 2}", "needle.motion[0].spin.phase"},
       {"needle.motion.3.spin={rate: 1, duty: 0.5}", "needle.motion[3].spin"}};
-  for (const auto& [o, k] : bad) {
-    SCOPED_TRACE(o);
-    try {
-      loadScene(insertion, {o});
-      FAIL();
-    } catch (const InputError& e) {
-      EXPECT_EQ(e.key(), k) << e.what();
-    }
-  }
+  expectRefusedNaming(insertion, bad);
+}
+
+// needle.bevel and interaction.lateral_stiffness: read, defaulted (the wedge's lateral ratio,
+// the near-field interface for a bevel scene, rigid ties without one), and bad values named.
+TEST(Scene, BevelIsReadDefaultedAndBadBevelNamesItsKey) {
+  const std::string insertion = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml";
+  using Mode = InteractionSettings::LateralStiffness;
+  EXPECT_EQ(loadScene(insertion).interaction->lateral_mode, Mode::Rigid);
+  const Scene s = loadScene(insertion, {"needle.bevel={angle: 0.5236}"});
+  ASSERT_TRUE(s.needles[0].bevel.enabled);
+  EXPECT_NEAR(s.needles[0].bevel.lateral_ratio, bevelLateralRatio(0.5236, 0.05), 1e-15);
+  EXPECT_EQ(s.interaction->lateral_mode, Mode::Auto);
+  const Scene v = loadScene(insertion, {"needle.bevel={angle: 0.5, lateral_ratio: 0.3, orientation: 1.5}",
+                                        "interaction.lateral_stiffness=2.5e5"});
+  EXPECT_EQ(v.needles[0].bevel.lateral_ratio, 0.3);
+  EXPECT_EQ(v.needles[0].bevel.orientation, 1.5);
+  EXPECT_EQ(v.interaction->lateral_mode, Mode::Value);
+  EXPECT_EQ(v.interaction->lateral_stiffness, 2.5e5);
+  EXPECT_EQ(loadScene(insertion, {"needle.bevel={angle: 0.5}", "interaction.lateral_stiffness=rigid"}).interaction->lateral_mode,
+            Mode::Rigid);
+  const std::vector<std::pair<std::string, std::string>> bad = {
+      {"needle.bevel={angle: 0}", "needle.bevel.angle"},
+      {"needle.bevel={angle: 1.5708}", "needle.bevel.angle"},
+      {"needle.bevel={angle: -0.3}", "needle.bevel.angle"},
+      {"needle.bevel={lateral_ratio: 0.3}", "needle.bevel.angle"},
+      {"needle.bevel={angle: 0.5, lateral_ratio: -0.1}", "needle.bevel.lateral_ratio"},
+      {"needle.bevel={angle: 0.5, sharpness: 2}", "needle.bevel.sharpness"},
+      {"interaction.lateral_stiffness=-3", "interaction.lateral_stiffness"},
+      {"interaction.lateral_stiffness=0", "interaction.lateral_stiffness"},
+      {"interaction.lateral_stiffness=soft", "interaction.lateral_stiffness"}};
+  expectRefusedNaming(insertion, bad);
 }

@@ -41,6 +41,8 @@ struct ReducedContactProblem {
   VecX gatherF(const VecX& lambda) const;
 
   std::vector<int> L, F;  // rows of W
+  std::vector<int> P;     // rows whose force the law prescribes (ContactConstraint::prescribed)
+  std::vector<double> prescribed;  // their forces
   std::vector<int> fpos;  // row -> index in F, -1 for an eliminated row
   Eigen::MatrixXd S, Z;
   VecX qF, z, target;

@@ -34,6 +34,14 @@ class ContactConstraint {
     lo = -std::numeric_limits<double>::infinity();
     hi = std::numeric_limits<double>::infinity();
   }
+  // A row whose force the law sets outright (a bevel tip's lateral load while it cuts):
+  // true, with the force in `value`. Such rows are moved to the right-hand side before the
+  // solve (ReducedContactProblem).
+  virtual bool prescribed(int row, double& value) const {
+    (void)row;
+    (void)value;
+    return false;
+  }
 
   EmbeddedPoint tissue;     // tissue material point
   int needle = 0;           // index of the needle
@@ -41,6 +49,9 @@ class ContactConstraint {
   Mat3 frame = Mat3::Identity();  // row directions (world), columns
   Vec3 gap = Vec3::Zero();        // d_k . (p_needle - p_tissue) at the start of the step
   Vec3 lambda = Vec3::Zero();     // forces of the last solve [N] (also the warm start)
+  // Compliance of the lateral rows (1, 2) [m/N]: the tie stretches by compliance * lambda
+  // (interaction.lateral_stiffness); 0 for a rigid tie.
+  double compliance = 0;
 };
 
 }  // namespace needle_sim

@@ -30,6 +30,7 @@
 #include "needle_sim/contact/constraint_rows.hpp"
 #include "needle_sim/contact/contact_constraint.hpp"
 #include "needle_sim/contact/interaction_settings.hpp"
+#include "needle_sim/contact/tip_constraint.hpp"
 #include "needle_sim/contact/tissue_surface.hpp"
 #include "needle_sim/needle/needle_body.hpp"
 #include "needle_sim/geometry/embedded_surface.hpp"
@@ -77,7 +78,7 @@ class NeedleTissueInteraction {
   double punctureForce(int needle) const { return tracks_[needle].puncture_force; }
   // The centre line of the needle's cut path in rest (material) space, from the puncture
   // point to the tip's last anchor, a point every quarter shaft spacing (empty before a
-  // puncture; a new puncture starts a new one). needle/tip_path.hpp measures it.
+  // puncture; a new puncture starts a new one).
   const std::vector<Vec3>& cutPath(int needle) const { return tracks_[needle].path; }
   // The same path where its material points are now (the deformed tissue), in `out` (a point
   // a rounding error outside the cells after a mesh change is taken in the nearest one).
@@ -101,7 +102,11 @@ class NeedleTissueInteraction {
     EmbeddedPoint path_end;
     bool has_end = false;
     std::vector<Vec3> path;  // cutPath()
+    // A bevel needle's shaft points go by the length its tip cut (rest space) since the
+    // puncture: the next is due at next_shaft_at.
+    double cut_length = 0, next_shaft_at = 0;
   };
+  std::unique_ptr<TipConstraint> makeTip(int n) const;
   void extendPath(int n, const Vec3& rest);
   bool locateCurrent(const Vec3& p, int hint, EmbeddedPoint& out) const;
   // Appends to `out` (not to constraints_, which the caller may be iterating).
@@ -113,6 +118,9 @@ class NeedleTissueInteraction {
   // meets the surface in this step (h).
   void detect(int n, double h);
   double grip(int n) const;  // shaft points' grip force on needle n [N]
+  // A shaft point's lateral compliance [m/N] on needle n in tissue element e
+  // (interface_compliance.hpp; 0: rigid).
+  double interfaceCompliance(int n, int e) const;
   void bindTissue(TissueBody& tissue, const EmbeddedSurface* organ);
 
   InteractionSettings settings_;

@@ -54,6 +54,13 @@ class NeedleBody {
   // Equilibrium with the base at the pose commanded for time t.
   StepStats solveStatic(double t);
 
+  // Orientation of beam node `node` in the pose convention (x along the needle; at rest the
+  // base's rest orientation; command/pose_convention.hpp).
+  Eigen::Quaterniond nodeFrame(int node) const;
+  const BevelParameters& bevel() const { return bevel_; }
+  // The bevel's lateral direction (world): the tip frame's y axis turned by the bevel's
+  // orientation (needle_parameters.hpp).
+  Vec3 bevelDirection() const;
   Vec3 tipPosition() const { return state_.p.back(); }
   Vec3 tipDirection() const;
   const Vec3& baseForce() const { return base_force_; }
@@ -87,6 +94,7 @@ class NeedleBody {
   Vec3 base_target_p_ = Vec3::Zero();
   Eigen::Quaterniond base_target_q_ = Eigen::Quaterniond::Identity();
   Vec3 base_force_ = Vec3::Zero(), base_moment_ = Vec3::Zero();
+  BevelParameters bevel_;
 };
 
 }  // namespace needle_sim

@@ -1,6 +1,7 @@
 #pragma once
 // What a needle body needs to know (a scene's `needle` or `needles[i]` entry): the beam,
 // its base pose at rest, its prescribed base motion, loads.
+#include <cmath>
 #include <string>
 #include <vector>
 
@@ -20,6 +21,28 @@ struct NeedleMotionKey {
   double spin_duty = 0;
 };
 
+// A bevel tip (doc/method.md "Bevel tip"). While the tip cuts, the tissue pushes it sideways
+// with lateral_ratio times the cutting strength (interaction.cutting_force), along the
+// bevel direction: the tip frame's y axis turned by `orientation` about its x axis (the
+// needle axis; frames in the pose convention, command/pose_convention.hpp), i.e. towards
+// the bevel's sharp point, the side a bevel-tipped needle bends to.
+struct BevelParameters {
+  bool enabled = false;
+  double angle = 0;          // between the bevel face and the needle axis, (0, pi/2) [rad]
+  double lateral_ratio = 0;  // lateral load / cutting strength (>= 0); the scene's default: bevelLateralRatio
+  double orientation = 0;    // [rad]
+};
+
+// The lateral-to-axial load ratio of a bevel face at `angle` to the axis cutting with face
+// friction mu: the face carries a pressure normal to it and a friction along it,
+// whose lateral and axial components give Q / P = (cos a - mu sin a) / (sin a + mu cos a)
+// (doc/method.md "Bevel tip" for the source and the range). Clamped at 0 (a blunt, rough face
+// pushes no sideways).
+inline double bevelLateralRatio(double angle, double mu) {
+  const double q = (std::cos(angle) - mu * std::sin(angle)) / (std::sin(angle) + mu * std::cos(angle));
+  return q > 0 ? q : 0.0;
+}
+
 // A needle (or cannula, electrode): a corotational beam whose base follows `motion`.
 struct NeedleParameters {
   std::string name = "needle";
@@ -35,6 +58,7 @@ struct NeedleParameters {
   Vec3 tip_force = Vec3::Zero();        // external load at the tip [N], e.g. for verification
   Vec3 tip_moment = Vec3::Zero();       // [N m]
   Vec3 gravity = Vec3::Zero();          // [m/s^2]
+  BevelParameters bevel;
 };
 
 }  // namespace needle_sim

@@ -37,8 +37,18 @@ struct NeedleObservation {
   InsertionState state = InsertionState::Approaching;  // Approaching without an interaction
   int constraints = 0;                                 // active constraint points
   double puncture_force = std::numeric_limits<double>::quiet_NaN();
+  // The cut path (rest space, needle/tip_path.hpp): its length and the curvature of its last
+  // kPathCurvatureWindow (NaN while shorter).
+  double path_length = 0;
+  double path_curvature = std::numeric_limits<double>::quiet_NaN();
+  // A bevel tip's lateral direction (tissue frame, unit); zero for a symmetric tip.
+  Vec3 bevel_direction = Vec3::Zero();
   bool inserted() const { return constraints > 0; }
 };
+
+// The stretch of the cut path whose bending observe() reports [m]: long against the shaft
+// spacing (1 mm) that the path's points follow, short against a steering arc (> 20 mm radius).
+constexpr double kPathCurvatureWindow = 5e-3;
 
 struct TargetObservation {
   Vec3 position = Vec3::Zero(), velocity = Vec3::Zero();

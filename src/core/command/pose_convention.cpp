@@ -33,13 +33,6 @@ Eigen::Quaterniond orientationOf(const BasePose& p, const BasePose& rest) {
       .normalized();
 }
 
-Eigen::Quaterniond nodeFrame(const NeedleBody& needle, int node) {
-  // The beam's node rotation carries the node's rest frame to its current one; the rest
-  // frame in the command convention is the rest base orientation.
-  const BasePose& rest = needle.trajectory().rest();
-  const Eigen::Quaterniond rest_frame = Eigen::Quaterniond::FromTwoVectors(Vec3::UnitX(), rest.direction) *
-                                        Eigen::AngleAxisd(rest.roll, Vec3::UnitX());
-  return (needle.state().q[node] * rest_frame).normalized();
-}
+Eigen::Quaterniond nodeFrame(const NeedleBody& needle, int node) { return needle.nodeFrame(node); }
 
 }  // namespace needle_sim

@@ -9,6 +9,7 @@
 #include <stdexcept>
 
 #include "needle_sim/contact/centre_line.hpp"
+#include "needle_sim/contact/interface_compliance.hpp"
 #include "needle_sim/contact/constraint_solve.hpp"
 #include "needle_sim/contact/puncture_constraint.hpp"
 #include "needle_sim/contact/shaft_constraint.hpp"
@@ -89,6 +90,14 @@ void NeedleTissueInteraction::rebind(TissueBody& tissue, const EmbeddedSurface* 
     }
 }
 
+std::unique_ptr<TipConstraint> NeedleTissueInteraction::makeTip(int n) const {
+  const BevelParameters& b = needles_[n]->bevel();
+  const double lateral = b.enabled ? b.lateral_ratio * settings_.cutting_force : 0.0;
+  auto t = std::make_unique<TipConstraint>(settings_.friction, settings_.cutting_force, lateral);
+  t->needle = n;
+  return t;
+}
+
 void NeedleTissueInteraction::extendPath(int n, const Vec3& rest) {
   // A point every quarter shaft spacing: enough to fit the path's curvature, few enough to
   // publish.
@@ -109,6 +118,20 @@ void NeedleTissueInteraction::cutPathNow(int n, std::vector<Vec3>& out) const {
 double NeedleTissueInteraction::grip(int n) const {
   // The normal force of the radial pressure over one shaft point's share of the path.
   return 2 * M_PI * needles_[n]->beam().section().outer_radius * settings_.grip_pressure * settings_.shaft_spacing;
+}
+
+double NeedleTissueInteraction::interfaceCompliance(int n, int e) const {
+  using Mode = InteractionSettings::LateralStiffness;
+  double k = settings_.lateral_stiffness;
+  if (settings_.lateral_mode == Mode::Rigid) return 0;
+  if (settings_.lateral_mode == Mode::Auto) {
+    const Eigen::Matrix<double, 8, 3> c = tissue_->mesh().elementCorners(e);
+    const double edge = (c.colwise().maxCoeff() - c.colwise().minCoeff()).mean();
+    const LinearElasticMaterial& m = tissue_->model().material();
+    const double r = needles_[n]->beam().section().outer_radius;
+    k = nearFieldLateralStiffness(m.young, m.poisson, r, resolvedRadius(edge, r));
+  }
+  return std::isfinite(k) ? 1 / (k * settings_.shaft_spacing) : 0.0;
 }
 
 int NeedleTissueInteraction::activePoints(int n) const {
@@ -166,17 +189,33 @@ void NeedleTissueInteraction::layShaftPoints(int n, const EmbeddedPoint& upto,
                                              std::vector<std::unique_ptr<ContactConstraint>>& out) {
   Track& tr = tracks_[n];
   const double sp = settings_.shaft_spacing;
+  const NeedleBody& nd = *needles_[n];
+  auto lay = [&](const EmbeddedPoint& ep) {
+    auto c = std::make_unique<ShaftConstraint>(settings_.friction, grip(n));
+    c->tissue = ep;
+    c->needle = n;
+    out.push_back(std::move(c));
+  };
+  if (nd.bevel().enabled) {
+    // A bevel needle bends under its tip load, so the path its tip cut is not where its
+    // centre line lies now: the tissue closes on the needle where it is (the material point
+    // at the centre line, `behind` the tip), its compliant tie unstretched. A point is laid
+    // as soon as the tip has cut past its place: the needle's free length behind the tip is
+    // below one spacing (doc/method.md "Bevel tip").
+    for (int guard = 0; guard < 100000 && tr.cut_length >= tr.next_shaft_at; ++guard) {
+      const double behind = tr.cut_length - tr.next_shaft_at;
+      EmbeddedPoint ep;
+      if (locateCurrent(centreLinePoint(nd, nd.beam().length() - behind).position, upto.element, ep)) lay(ep);
+      tr.next_shaft_at += sp;
+    }
+    return;
+  }
   for (int guard = 0; guard < 100000; ++guard) {
     const Vec3 d = upto.rest - tr.next_shaft_rest;
     const double len = d.norm();
     if (len < sp) break;
     EmbeddedPoint ep;
-    if (rest_locator_->locate(tr.next_shaft_rest, ep)) {
-      auto c = std::make_unique<ShaftConstraint>(settings_.friction, grip(n));
-      c->tissue = ep;
-      c->needle = n;
-      out.push_back(std::move(c));
-    }
+    if (rest_locator_->locate(tr.next_shaft_rest, ep)) lay(ep);
     tr.next_shaft_rest += d * (sp / len);
   }
 }
@@ -237,6 +276,16 @@ bool NeedleTissueInteraction::updateGeometry() {
     const CentreLinePoint cl = centreLinePoint(*needles_[c->needle], c->s);
     if (c->kind() != ConstraintKind::Puncture) c->frame = frameFrom(cl.axis);
     c->gap = c->frame.transpose() * (cl.position - pT);
+    if (c->kind() == ConstraintKind::Shaft) c->compliance = interfaceCompliance(c->needle, c->tissue.element);
+    if (c->kind() == ConstraintKind::Tip) {
+      auto& tip = static_cast<TipConstraint&>(*c);
+      if (tip.bevel()) {
+        // The bevel direction is perpendicular to the tip's own axis; the rows' frame is the
+        // centre line's at the tip, the same axis up to the beam's interpolation.
+        const Vec3 b = nd.bevelDirection();
+        tip.setBevelDirection((b - cl.axis.dot(b) * cl.axis).normalized());
+      }
+    }
     kept.push_back(std::move(c));
   }
   constraints_ = std::move(kept);
@@ -302,6 +351,11 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
     const double eps = 1e-8 * W.diagonal().maxCoeff();
     W.diagonal().array() += eps;
   }
+  // Compliant ties (interface_compliance.hpp): the row asks gap + h u = -compliance * lambda,
+  // i.e. (W + compliance / h) lambda = -gap / h - u_free.
+  for (int p = 0; p < np; ++p)
+    if (constraints_[p]->compliance > 0)
+      for (int k = 1; k < 3; ++k) W(3 * p + k, 3 * p + k) += constraints_[p]->compliance / h;
   // 4. The constraint solve (block active set, or the paper's projected Gauss-Seidel),
   //    warm-started from the last multipliers.
   std::vector<ContactConstraint*> cs;
@@ -342,12 +396,23 @@ void NeedleTissueInteraction::afterCommit() {
       if (c.lambda[0] > settings_.puncture_force) {
         // Puncture: the tip is tied to the tissue where it touched; the path starts there.
         tr.puncture_force = c.lambda[0];
-        auto t = std::make_unique<TipConstraint>(settings_.friction, settings_.cutting_force);
+        auto t = makeTip(c.needle);
         t->tissue = c.tissue;
-        t->needle = c.needle;
         tr.next_shaft_rest = c.tissue.rest;
+        tr.cut_length = 0;
+        tr.next_shaft_at = 0;
         tr.path.clear();
         extendPath(c.needle, c.tissue.rest);
+        if (t->bevel()) {
+          // The entry hole holds a bevel tip's needle from the start: the tip's lateral tie
+          // gives way to the bevel's load as soon as it cuts, and the needle outside the
+          // tissue is long and slender (doc/method.md "Bevel tip").
+          auto e = std::make_unique<ShaftConstraint>(settings_.friction, grip(c.needle));
+          e->tissue = c.tissue;
+          e->needle = c.needle;
+          created.push_back(std::move(e));
+          tr.next_shaft_at = settings_.shaft_spacing;
+        }
         tr.has_path = true;
         tr.state = InsertionState::Punctured;
         created.push_back(std::move(t));
@@ -371,9 +436,11 @@ void NeedleTissueInteraction::afterCommit() {
         // gets its shaft points.
         EmbeddedPoint anchor;
         if (locateCurrent(tip, c.tissue.element, anchor)) {
+          tr.cut_length += (anchor.rest - c.tissue.rest).norm();
           layShaftPoints(c.needle, anchor, created);
           c.tissue = anchor;
           extendPath(c.needle, anchor.rest);
+          tipc.setWasCutting(true);
           tr.state = InsertionState::Inserted;
         } else {
           // The tip left the tissue mesh (through the far side): keep the path, drop the tip.
@@ -388,8 +455,9 @@ void NeedleTissueInteraction::afterCommit() {
         tr.has_end = true;
         it = constraints_.erase(it);
         continue;
-      } else if (tr.state == InsertionState::Punctured) {
-        tr.state = InsertionState::Inserted;
+      } else {
+        tipc.setWasCutting(false);
+        if (tr.state == InsertionState::Punctured) tr.state = InsertionState::Inserted;
       }
     }
     ++it;
@@ -402,9 +470,8 @@ void NeedleTissueInteraction::afterCommit() {
     const Vec3 tip = nd.tipPosition();
     const Vec3 axis = (tip - nd.state().p[nd.beam().numNodes() - 2]).normalized();
     if (axis.dot(tip - tr.path_end.interpolate(mesh, x)) <= 0) continue;
-    auto t = std::make_unique<TipConstraint>(settings_.friction, settings_.cutting_force);
+    auto t = makeTip(static_cast<int>(n));
     t->tissue = tr.path_end;
-    t->needle = static_cast<int>(n);
     created.push_back(std::move(t));
     tr.state = InsertionState::Inserted;
     tr.has_end = false;
@@ -419,15 +486,16 @@ void NeedleTissueInteraction::afterCommit() {
       for (const auto& c : constraints_) has_tip |= c->needle == static_cast<int>(n) && c->kind() == ConstraintKind::Tip;
       EmbeddedPoint anchor;
       if (!has_tip && locateCurrent(needles_[n]->tipPosition(), -1, anchor)) {
-        auto t = std::make_unique<TipConstraint>(settings_.friction, settings_.cutting_force);
+        auto t = makeTip(static_cast<int>(n));
         t->tissue = anchor;
-        t->needle = static_cast<int>(n);
+        tr.path.clear();
+        extendPath(static_cast<int>(n), anchor.rest);
         created.push_back(std::move(t));
         tr.state = InsertionState::Inserted;
         tr.has_path = true;
         tr.next_shaft_rest = anchor.rest;
-        tr.path.clear();
-        extendPath(static_cast<int>(n), anchor.rest);
+        tr.cut_length = 0;
+        tr.next_shaft_at = 0;
       }
     }
     tr.sheathed = sheathed;

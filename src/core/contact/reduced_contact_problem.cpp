@@ -11,14 +11,27 @@ namespace needle_sim {
 // leaving the Schur complement S = W_FF - W_FL W_LL^-1 W_LF on the rows that carry a law
 // (normal contact, friction, cutting). Many shaft points per needle element make W_LL near
 // singular (redundant rows); a direct factorisation handles that where an iteration crawls.
+// Rows whose force the law prescribes (P: a cutting bevel tip's lateral rows) are known
+// before the solve: their forces go to the right-hand side, u_free + W_{.,P} lambda_P, and
+// scatter() writes them back.
 ReducedContactProblem::ReducedContactProblem(const Eigen::MatrixXd& W, const VecX& u_free,
                                              const std::vector<ContactConstraint*>& c, double h) {
   const int np = static_cast<int>(c.size());
   const int m = 3 * np;
   target.resize(m);
   for (int p = 0; p < np; ++p) target.segment<3>(3 * p) = c[p]->target(h);
+  VecX u = u_free;
   for (int p = 0; p < np; ++p)
-    for (int k = 0; k < 3; ++k) (c[p]->kind() != ConstraintKind::Puncture && k > 0 ? L : F).push_back(3 * p + k);
+    for (int k = 0; k < 3; ++k) {
+      double v = 0;
+      if (c[p]->prescribed(k, v)) {
+        P.push_back(3 * p + k);
+        prescribed.push_back(v);
+        u.noalias() += W.col(3 * p + k) * v;
+      } else {
+        (c[p]->kind() != ConstraintKind::Puncture && k > 0 ? L : F).push_back(3 * p + k);
+      }
+    }
   const int nl = static_cast<int>(L.size()), nf = static_cast<int>(F.size());
   fpos.assign(m, -1);
   for (int i = 0; i < nf; ++i) fpos[F[i]] = i;
@@ -34,14 +47,14 @@ ReducedContactProblem::ReducedContactProblem(const Eigen::MatrixXd& W, const Vec
     return o;
   };
   S = sub(F, F);
-  qF = vec(u_free, F);
+  qF = vec(u, F);
   Z.resize(nl, nf);
   z.resize(nl);
   if (nl > 0) {
     Eigen::LLT<Eigen::MatrixXd> llt(sub(L, L));
     const Eigen::MatrixXd WLF = sub(L, F);
     Z = llt.solve(WLF);
-    z = llt.solve(vec(target, L) - vec(u_free, L));
+    z = llt.solve(vec(target, L) - vec(u, L));
     S.noalias() -= WLF.transpose() * Z;
     qF.noalias() += WLF.transpose() * z;
   }
@@ -53,6 +66,7 @@ void ReducedContactProblem::scatter(const VecX& lF, VecX& lambda) const {
     for (size_t i = 0; i < L.size(); ++i) lambda[L[i]] = lL[static_cast<Eigen::Index>(i)];
   }
   for (size_t i = 0; i < F.size(); ++i) lambda[F[i]] = lF[static_cast<Eigen::Index>(i)];
+  for (size_t i = 0; i < P.size(); ++i) lambda[P[i]] = prescribed[i];
 }
 
 VecX ReducedContactProblem::gatherF(const VecX& lambda) const {

@@ -99,6 +99,12 @@ void RunRecorder::declareColumns() {
     if (interaction) {
       col(n + "state", [i](std::ostream& o, const Row& r) { o << toString(r.obs.needles[i].state); });
       col(n + "constraints", [i](std::ostream& o, const Row& r) { o << r.obs.needles[i].constraints; });
+      if (sim_.needle(i).bevel().enabled) {
+        // Steering: the cut path's length and bending (observables.hpp), the bevel's direction.
+        col(n + "path_length", [i](std::ostream& o, const Row& r) { o << r.obs.needles[i].path_length; });
+        col(n + "path_curvature", [i](std::ostream& o, const Row& r) { o << r.obs.needles[i].path_curvature; });
+        vec(n + "bevel_", [i](const Row& r) { return r.obs.needles[i].bevel_direction; });
+      }
     }
   }
   if (interaction) {

@@ -46,7 +46,8 @@ NeedleBody::NeedleBody(const NeedleParameters& n, const SolverSettings& solver)
       settings_(solver),
       dofs_(basePrescribed(6 * (n.elements + 1))),
       assembler_(dofs_.numFree(), beamElementDofs(n.elements, dofs_)),
-      chol_(Ordering::Amd) {
+      chol_(Ordering::Amd),
+      bevel_(n.bevel) {
   for (const auto& k : expandDutyCycledSpin(n.motion, trajectory_.rest()))
     trajectory_.add(k.t, BasePose{k.position, k.direction, k.roll});
   state_ = beam_.restState();
@@ -80,6 +81,21 @@ void NeedleBody::placeAt(double t) {
 }
 
 Vec3 NeedleBody::tipDirection() const { return state_.q.back() * beam_.restDirection(); }
+
+Eigen::Quaterniond NeedleBody::nodeFrame(int node) const {
+  // The beam's node rotation carries the node's rest frame to its current one; the rest
+  // frame in the command convention (command/pose_convention.hpp) is the rest base
+  // orientation.
+  const BasePose& rest = trajectory_.rest();
+  const Eigen::Quaterniond rest_frame =
+      Eigen::Quaterniond::FromTwoVectors(Vec3::UnitX(), rest.direction) * Eigen::AngleAxisd(rest.roll, Vec3::UnitX());
+  return (state_.q[node] * rest_frame).normalized();
+}
+
+Vec3 NeedleBody::bevelDirection() const {
+  const double a = bevel_.orientation;
+  return nodeFrame(beam_.numNodes() - 1) * Vec3(0, std::cos(a), std::sin(a));
+}
 
 bool NeedleBody::assembleAndFactor(const std::vector<Mat12>& Ke, double c_m, double c_k, StepStats& st) {
   auto t0 = steadyNow();

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
+#include <limits>
 #include <regex>
 #include <set>
 #include <sstream>
@@ -220,7 +221,7 @@ void readTissue(const SceneReader& r, const YAML::Node& n, Scene& s) {
 
 NeedleScene readNeedle(const SceneReader& r, const YAML::Node& n, const std::string& p) {
   r.checkKeys(n, p, {"name", "length", "radius", "inner_radius", "young", "poisson", "density", "elements", "base",
-                     "motion", "tip_force", "tip_moment", "gravity"});
+                     "motion", "tip_force", "tip_moment", "gravity", "bevel"});
   static const std::regex ident("[A-Za-z0-9_]+");
   NeedleScene s;
   s.key = p;
@@ -253,6 +254,20 @@ NeedleScene readNeedle(const SceneReader& r, const YAML::Node& n, const std::str
   if (auto v = r.child(n, p, "tip_force", false)) s.tip_force = r.vec3(v, p + ".tip_force");
   if (auto v = r.child(n, p, "tip_moment", false)) s.tip_moment = r.vec3(v, p + ".tip_moment");
   if (auto v = r.child(n, p, "gravity", false)) s.gravity = r.vec3(v, p + ".gravity");
+  if (auto b = r.child(n, p, "bevel", false)) {
+    const std::string q = p + ".bevel";
+    r.checkKeys(b, q, {"angle", "lateral_ratio", "orientation"});
+    s.bevel.enabled = true;
+    s.bevel.angle = r.number(r.child(b, q, "angle", true), q + ".angle");
+    if (!(s.bevel.angle > 0 && s.bevel.angle < M_PI / 2))
+      r.fail(q + ".angle", "must be in (0, pi/2) radians (the face's angle to the needle axis), got " + SceneReader::fmt(s.bevel.angle));
+    s.bevel.lateral_ratio = std::numeric_limits<double>::quiet_NaN();  // the wedge model's, once the friction is known
+    if (auto v = r.child(b, q, "lateral_ratio", false)) {
+      s.bevel.lateral_ratio = r.number(v, q + ".lateral_ratio");
+      if (!(s.bevel.lateral_ratio >= 0)) r.fail(q + ".lateral_ratio", "must be >= 0, got " + SceneReader::fmt(s.bevel.lateral_ratio));
+    }
+    if (auto v = r.child(b, q, "orientation", false)) s.bevel.orientation = r.number(v, q + ".orientation");
+  }
   if (auto m = r.child(n, p, "motion", false)) {
     if (!m.IsSequence()) r.fail(p + ".motion", "must be a list of {t, advance} or {t, position, direction}");
     for (size_t i = 0; i < m.size(); ++i) {
@@ -310,7 +325,7 @@ void readNeedles(const SceneReader& r, const YAML::Node& root, Scene& s) {
 
 void readInteraction(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "interaction";
-  r.checkKeys(n, p, {"puncture_force", "cutting_force", "friction", "shaft_spacing", "grip_pressure", "solver"});
+  r.checkKeys(n, p, {"puncture_force", "cutting_force", "friction", "shaft_spacing", "grip_pressure", "lateral_stiffness", "solver"});
   InteractionSettings is;
   auto nonNegative = [&](const char* key) {
     const std::string k = SceneReader::join(p, key);
@@ -325,6 +340,25 @@ void readInteraction(const SceneReader& r, const YAML::Node& n, Scene& s) {
   if (auto v = r.child(n, p, "grip_pressure", false)) {
     is.grip_pressure = r.number(v, p + ".grip_pressure");
     if (!(is.grip_pressure >= 0)) r.fail(p + ".grip_pressure", "must be >= 0 [Pa], got " + SceneReader::fmt(is.grip_pressure));
+  }
+  if (auto v = r.child(n, p, "lateral_stiffness", false)) {
+    const std::string k = p + ".lateral_stiffness";
+    using Mode = InteractionSettings::LateralStiffness;
+    if (v.IsScalar() && v.Scalar() == "auto") {
+      is.lateral_mode = Mode::Auto;
+    } else if (v.IsScalar() && v.Scalar() == "rigid") {
+      is.lateral_mode = Mode::Rigid;
+    } else {
+      is.lateral_stiffness = r.number(v, k);
+      if (!(is.lateral_stiffness > 0 && std::isfinite(is.lateral_stiffness)))
+        r.fail(k, "must be 'auto', 'rigid' or a stiffness > 0 [Pa], got " + SceneReader::fmt(is.lateral_stiffness));
+      is.lateral_mode = Mode::Value;
+    }
+  } else {
+    // A tip load bends a bevel needle over a length the interface sets (doc/method.md "Bevel
+    // tip"); rigid ties would let the shaft points' spacing set it.
+    for (const auto& nd : s.needles)
+      if (nd.bevel.enabled) is.lateral_mode = InteractionSettings::LateralStiffness::Auto;
   }
   if (auto sv = r.child(n, p, "solver", false)) {
     r.checkKeys(sv, p + ".solver", {"method", "tolerance", "max_iterations"});
@@ -563,6 +597,11 @@ Scene build(YAML::Node root, const std::string& file, const std::vector<std::str
   readNeedles(r, root, s);
   if (!s.has_tissue && s.needles.empty()) r.fail("tissue", "missing: a scene needs a tissue, a needle, or both");
   if (auto v = r.child(root, "", "interaction", false)) readInteraction(r, v, s);
+  for (auto& nd : s.needles)
+    if (nd.bevel.enabled) {
+      if (!s.interaction) r.fail(nd.key + ".bevel", "a bevel acts while the tip cuts: the scene needs an 'interaction' section");
+      if (std::isnan(nd.bevel.lateral_ratio)) nd.bevel.lateral_ratio = bevelLateralRatio(nd.bevel.angle, s.interaction->friction);
+    }
   if (auto v = r.child(root, "", "adaptivity", false)) readAdaptivity(r, v, s);
   if (auto v = r.child(root, "", "probes", false)) {
     if (!s.has_tissue) r.fail("probes", "probes are tissue points, but the scene has no tissue");

@@ -1,6 +1,7 @@
 #include "needle_sim/sim/observables.hpp"
 
 #include "needle_sim/command/pose_convention.hpp"
+#include "needle_sim/needle/tip_path.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 namespace needle_sim {
@@ -37,6 +38,12 @@ void observe(const Simulation& sim, Observables& o) {
     n.state = in ? in->state(i) : InsertionState::Approaching;
     n.constraints = in ? in->activePoints(i) : 0;
     n.puncture_force = in ? in->punctureForce(i) : std::numeric_limits<double>::quiet_NaN();
+    if (in) {
+      const std::vector<Vec3>& path = in->cutPath(i);
+      n.path_length = pathLength(path);
+      n.path_curvature = endCurvature(path, kPathCurvatureWindow);
+    }
+    n.bevel_direction = nd.bevel().enabled ? nd.bevelDirection() : Vec3::Zero();
   }
 
   const int nt = sim.numTargets();
