@@ -223,6 +223,36 @@ TEST(Cli, PlotScriptWritesPngFiles) {
   EXPECT_EQ(WEXITSTATUS(raw), 1);
 }
 
+// The gel steering demo (config/scenes/gel_bevel_steering.yaml): 24 mm with the bevel
+// pointing to +y, half a turn, 24 mm more. The cut path bends to +y, then back: an S whose
+// highest point is at the roll; it stays in the x-y plane. The plot script draws it.
+TEST(Cli, GelSteeringSceneCutsAnSAndPlotsIt) {
+  const fs::path out = freshDir("gel");
+  const Result r = runTool("run '" + kSrc + "/config/scenes/gel_bevel_steering.yaml' --out '" + out.string() + "' --quiet");
+  ASSERT_EQ(r.status, 0) << r.err;
+  std::ifstream in(out / "summary.json");
+  const json path = json::parse(in)["needles"]["needle"]["cut_path"];
+  ASSERT_GT(path.size(), 100u);
+  double y_max = -1, x_at_max = 0, z_dev = 0;
+  for (const auto& p : path) {
+    if (p[1].get<double>() > y_max) y_max = p[1].get<double>(), x_at_max = p[0].get<double>();
+    z_dev = std::max(z_dev, std::abs(p[2].get<double>() - 0.015));
+  }
+  EXPECT_GT(y_max - 0.015, 1.5e-3);                  // bent by over 1.5 mm towards +y (2.1 mm)
+  EXPECT_NEAR(x_at_max, 0.024, 2e-3);                 // turned back at the roll
+  EXPECT_LT(path.back()[1].get<double>(), y_max - 1e-3);  // and back towards the axis after it
+  EXPECT_LT(z_dev, 1e-4);
+  const std::string cmd = "/usr/bin/python3 '" + kSrc + "/scripts/plot_tip_path.py' '" + out.string() + "' > /dev/null";
+  ASSERT_EQ(std::system(cmd.c_str()), 0);
+  std::ifstream png(out / "tip_path.png", std::ios::binary);
+  char magic[8] = {};
+  png.read(magic, 8);
+  EXPECT_EQ(std::string(magic + 1, 3), "PNG");
+  // A run without a cut path is a clear error.
+  const std::string bad = "/usr/bin/python3 '" + kSrc + "/scripts/plot_tip_path.py' /nonexistent 2>/dev/null";
+  EXPECT_EQ(WEXITSTATUS(std::system(bad.c_str())), 2);
+}
+
 // Error outputs on request: eta columns every step and the final mesh as a VTU file that
 // parses as XML with one eta and one von Mises value per element.
 TEST(Cli, ErrorEstimateAndVtuOnRequest) {
