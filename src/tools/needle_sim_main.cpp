@@ -39,6 +39,7 @@
 #include "bench.hpp"
 #include "calibrate.hpp"
 #include "predict.hpp"
+#include "steer.hpp"
 #include "share_dir.hpp"
 #include "soak.hpp"
 
@@ -324,6 +325,19 @@ int main(int argc, char** argv) {
   predict->add_option("--csv", pred.csv, "write the last prediction's samples to this file");
   predict->add_option("--json", pred.json_out, "also write the results as JSON to this file");
 
+  SteerOptions steer_opts;
+  auto* steer = app.add_subcommand("steer", "plan a bevel-tip needle's roll-flip insertion to a target on the simulator's prediction, then run it");
+  steer->add_option("scene", steer_opts.scene, "scene file (YAML), with a bevel-tipped needle")->required();
+  steer->add_option("--set", steer_opts.sets, "override a scene value (repeatable)");
+  steer->add_option("--target", steer_opts.target, "the target: x y z [m], tissue frame")->expected(3)->required();
+  steer->add_option("--needle", steer_opts.needle, "needle to steer (default: the first)");
+  steer->add_option("--speed", steer_opts.speed, "insertion speed [m/s]")->capture_default_str();
+  steer->add_option("--dt", steer_opts.dt, "time step of the predictions [s] (0: the scene's)")->capture_default_str();
+  steer->add_option("--tolerance", steer_opts.tolerance, "done when the predicted tip is this close [m]")->capture_default_str();
+  steer->add_option("--max-predictions", steer_opts.max_predictions, "predictions at most")->capture_default_str();
+  steer->add_flag("!--no-live", steer_opts.live, "do not run the plan live afterwards");
+  steer->add_option("--json", steer_opts.json_out, "also write the plan and the results as JSON to this file");
+
   SoakOptions soak_opts;
   auto* soak = app.add_subcommand("soak", "long back-and-forth insertion: memory, step time, energy per window");
   soak->add_option("scene", soak_opts.scene, "scene file (YAML)")->required();
@@ -370,6 +384,7 @@ int main(int argc, char** argv) {
     scene_path = resolveScene(scene_path);
     bench_opts.scene = resolveScene(bench_opts.scene);
     pred.scene = resolveScene(pred.scene);
+    steer_opts.scene = resolveScene(steer_opts.scene);
     soak_opts.scene = resolveScene(soak_opts.scene);
     if (*calibrate) cal.scene = resolveScene(cal.scene);
   } catch (const CLI::ParseError& e) {
@@ -381,6 +396,7 @@ int main(int argc, char** argv) {
     if (*check) return checkCommand(scene_path, sets);
     if (*bench) return benchCommand(bench_opts);
     if (*predict) return predictCommand(pred);
+    if (*steer) return steerCommand(steer_opts);
     if (*soak) return soakCommand(soak_opts);
     if (*calibrate) return calibrateCommand(cal);
   } catch (const InputError& e) {

@@ -148,6 +148,11 @@ class Simulation {
   // in order; empty without re-planning.
   const std::vector<TrajectoryReplan>& replans() const { return replans_; }
 
+  // The material point at rest position p; throws InputError(file, key) naming `what` when
+  // it lies outside the tissue (or the organ surface).
+  EmbeddedPoint embedPoint(const PointLocator& locator, const Vec3& p, const std::string& file,
+                           const std::string& key, const std::string& what) const;
+
  private:
   void checkState() const;
   // defer: a change may be built in the background (dynamic steps with a rebuild_delay).
@@ -180,10 +185,6 @@ class Simulation {
   static void support(const BrainShift* shift, TissueBody& body, const EmbeddedSurface* organ);
   void embedProbes();
   void embedTargets();
-  // The material point at rest position p; throws InputError(file, key) naming `what` when
-  // it lies outside the tissue (or the organ surface).
-  EmbeddedPoint embedPoint(const PointLocator& locator, const Vec3& p, const std::string& file,
-                           const std::string& key, const std::string& what) const;
   // Volume fractions of the active mesh's elements (immersed geometry), cached per cell.
   void setFractions(HexMesh& mesh, const std::vector<int>& cells);
   // Loads that outlive a mesh change: the brain shift's gravity and skull reactions, and the
