@@ -51,6 +51,8 @@ std::vector<PlanWaypoint> toWaypoints(const needle_sim::NeedleTrajectory& m, con
     x.time = p.time_from_start.toSec();
     x.position = to_tissue.apply(fromPoint(p.pose.position));
     x.orientation = to_tissue.apply(fromQuaternion(p.pose.orientation));
+    x.spin_rate = p.spin_rate;
+    x.spin_duty = p.spin_duty;
     w.push_back(x);
   }
   return w;
@@ -124,6 +126,8 @@ needle_sim::SimStatus statusMessage(const StepFrame& f, const std::string& frame
     if (!have) continue;
     st.tips.push_back(toPoint(o.needles[i].tip));
     st.bases.push_back(toPose(o.needles[i].base, o.needles[i].base_frame));
+    st.path_curvatures.push_back(o.needles[i].path_curvature);
+    st.bevel_directions.push_back(toVector(o.needles[i].bevel_direction));
   }
   for (size_t i = 0; i < o.probe_displacement.size(); ++i) {
     needle_sim::Probe p;

@@ -26,6 +26,7 @@ struct DisplayOutputs::Frame {
   std::vector<std::string> needles;
   std::vector<std::vector<Vec3>> node_p;  // per needle, per beam node
   std::vector<std::vector<Eigen::Quaterniond>> node_q;
+  std::vector<Vec3> bevel;  // per needle, the bevel's lateral direction (zero: a symmetric tip)
   std::vector<bool> path, tip_path, marker;  // subscribed, per needle
   std::vector<std::vector<Vec3>> cut_path;  // per needle, where its cut path is now (when subscribed)
   std::vector<std::string> targets;
@@ -77,6 +78,7 @@ void DisplayOutputs::publish(const Simulation& sim, const std::shared_ptr<const 
     for (int k = 0; k < nd.beam().numNodes(); ++k) q.push_back(nodeFrame(nd, k));
     f->node_p.push_back(nd.state().p);
     f->node_q.push_back(std::move(q));
+    f->bevel.push_back(i < static_cast<int>(obs.needles.size()) ? obs.needles[i].bevel_direction : Vec3::Zero());
     f->path.push_back(path_pubs_[i].getNumSubscribers() > 0);
     f->marker.push_back(needle_marker_pubs_[i].getNumSubscribers() > 0);
     f->tip_path.push_back(tip_path_pubs_[i].getNumSubscribers() > 0);
@@ -146,6 +148,14 @@ void DisplayOutputs::build(const Frame& f) {
   std::vector<geometry_msgs::TransformStamped> tfs;
   for (size_t i = 0; i < f.needles.size(); ++i) {
     tfs.push_back(transform(header, f.needles[i] + "_tip", f.node_p[i].back(), f.node_q[i].back()));
+    if (f.bevel[i].squaredNorm() > 0) {
+      // <needle>_bevel: the tip frame turned about its x axis (the needle's) until its y axis
+      // points along the bevel's lateral direction, the side the needle bends to.
+      const Eigen::Quaterniond& q = f.node_q[i].back();
+      const Vec3 b = q.conjugate() * f.bevel[i];  // in the tip frame
+      const Eigen::Quaterniond turn(Eigen::AngleAxisd(std::atan2(b.z(), b.y()), Vec3::UnitX()));
+      tfs.push_back(transform(header, f.needles[i] + "_bevel", f.node_p[i].back(), q * turn));
+    }
     if (broadcast_bases_) tfs.push_back(transform(header, f.needles[i] + "_base", f.node_p[i].front(), f.node_q[i].front()));
   }
   for (size_t i = 0; i < f.targets.size(); ++i) {

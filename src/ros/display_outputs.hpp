@@ -5,7 +5,8 @@
 // legend in ~tissue/legend), the error indicator per refinement level
 // (~tissue/error_markers), each needle (~<needle>/path, ~<needle>/marker, and ~<needle>/tip_path,
 // the centre line of its cut path where it is now), the targets
-// (~target/markers), and the tf frames <needle>_tip, <needle>_base, target/<name>, target
+// (~target/markers), and the tf frames <needle>_tip, <needle>_base, <needle>_bevel (bevel
+// tips: y along the bevel), target/<name>, target
 // (and ~parent_frame -> ~tissue_frame, static). Snapshots are taken on the stepping thread
 // (positions only); fields and messages are built on the output thread.
 #include <ros/ros.h>

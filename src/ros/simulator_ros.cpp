@@ -73,6 +73,11 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
         },
         ros::VoidConstPtr(), &predict_queue_);
     predict_srv_ = pnh_.advertiseService(o);
+    ros::AdvertiseServiceOptions so = ros::AdvertiseServiceOptions::create<needle_sim::SteerToTarget>(
+        "steer",
+        [this](needle_sim::SteerToTarget::Request& q, needle_sim::SteerToTarget::Response& r) { return onSteer(q, r); },
+        ros::VoidConstPtr(), &predict_queue_);
+    steer_srv_ = pnh_.advertiseService(so);
     predict_spinner_ = std::make_unique<ros::AsyncSpinner>(1, &predict_queue_);
     predict_spinner_->start();
   }
@@ -96,6 +101,7 @@ SimulatorRos::~SimulatorRos() {
   for (auto& sub : command_subs_) sub.shutdown();
   diag_timer_.stop();
   predict_srv_.shutdown();
+  steer_srv_.shutdown();
   if (predict_spinner_) predict_spinner_->stop();  // waits for a prediction under way
   timer_.stop();
   reconfigure_.reset();
@@ -185,13 +191,17 @@ void SimulatorRos::onTimer(const ros::TimerEvent&) {
     if (due == 0) return;
   }
   if (restart) {
-    ROS_WARN("needle_sim: time jumped back (bag loop?): the scene restarts");
-    std_srvs::Trigger::Request req;
-    std_srvs::Trigger::Response res;
-    onReset(req, res);
+    restartAfterClockJump("time jumped back (bag loop?)");
     return;
   }
   wake_.notify_one();
+}
+
+void SimulatorRos::restartAfterClockJump(const char* what) {
+  ROS_WARN("needle_sim: %s: the scene restarts", what);
+  std_srvs::Trigger::Request req;
+  std_srvs::Trigger::Response res;
+  onReset(req, res);
 }
 
 void SimulatorRos::setStepperPriority() {
@@ -235,10 +245,7 @@ void SimulatorRos::pacedWorker() {
       back = schedule_.tick((now - origin_).toSec()) < 0;
     }
     if (back) {  // the system clock was set back: as a bag loop under the timer, a restart
-      ROS_WARN("needle_sim: the clock went back: the scene restarts");
-      std_srvs::Trigger::Request req;
-      std_srvs::Trigger::Response res;
-      onReset(req, res);
+      restartAfterClockJump("the clock went back");
       continue;
     }
     // The due steps (several after a stall: back to back, each counted late if it is).

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 #include <string>
 #include <vector>
 
@@ -127,6 +128,66 @@ TEST(BevelTip, RollingTheBaseTurnsTheBend) {
   EXPECT_NEAR(quadratic(s_curve, 0.011, 0.019, 1), -c_same, 0.05 * c_same);
   EXPECT_NEAR(quadratic(turned, 0.011, 0.019, 2), c_same, 0.05 * c_same);
   EXPECT_LT(std::abs(quadratic(turned, 0.011, 0.019, 1)), 0.02 * c_same);
+}
+
+// The kinematic (unicycle) model of bevel steering (Webster et al. 2006): the tip moves along
+// its heading, which turns at a constant curvature kappa towards the bevel. The simulated
+// needle takes a transition length ~1/beta, beta = (k / 4 EI)^(1/4), to reach its curvature,
+// so the model holds where 1/beta is short: a needle soft against its support. Here the full
+// arc of a needle on a 1 MPa Winkler interface with kappa fitted from 8 mm on, against the
+// unicycle started from the simulated path's state (position, heading) 2 mm after the entry
+// (past the entry's transient, the soft needle's 1/beta), over the remaining 17 mm. The error
+// is the largest distance between the two paths over the simulated path's largest deflection
+// from the start heading's straight line (the model's whole prediction: a fraction of the
+// inserted length would let a straight line pass). Measured: E 5 MPa (1/beta 2.0 mm) 0.0105
+// mm of 2.22 mm (0.005); E 500 MPa (1/beta 6.3 mm) 0.024 mm of 0.098 mm (0.24): the stiff
+// needle is still building its curvature where the model has it constant (doc/method.md
+// "Bevel tip", the kinematic model).
+namespace {
+struct UnicycleCheck {
+  double kappa = 0, error = 0, deflection = 0;
+};
+UnicycleCheck unicycleCheck(const std::string& young) {
+  const std::vector<std::string> o = {"interaction.shaft_spacing=0.0005", "interaction.lateral_stiffness=1e6",
+                                      "needle.young=" + young, "needle.bevel.angle=0.5235987755982988",
+                                      "needle.motion=[{t: 0, advance: 0}, {t: 2.2, advance: 0.022}]",
+                                      "time.duration=2.2"};
+  Simulation sim(loadScene(kPhantom, o));
+  for (long k = 0; k < sim.scene().numSteps(); ++k) sim.step();
+  const std::vector<Vec3> path = sim.interaction()->cutPath(0);
+  UnicycleCheck c;
+  c.kappa = 1 / arcFit(path).radius;
+  size_t i0 = 0;
+  double s0 = 0;
+  while (i0 + 2 < path.size() && s0 < 2e-3) {
+    s0 += (path[i0 + 1] - path[i0]).norm();
+    ++i0;
+  }
+  const Vec3 p0 = path[i0];
+  const double th0 = std::atan2(path[i0 + 1].y() - p0.y(), path[i0 + 1].x() - p0.x()), k = c.kappa;
+  const Vec3 t0(std::cos(th0), std::sin(th0), 0), n0(-std::sin(th0), std::cos(th0), 0);
+  double s = 0;
+  for (size_t i = i0; i < path.size(); ++i) {
+    if (i > i0) s += (path[i] - path[i - 1]).norm();
+    // The unicycle's arc in the x-y plane, heading th0 + k s, turning towards +y.
+    const Vec3 u = p0 + Vec3(std::sin(th0 + k * s) - std::sin(th0), std::cos(th0) - std::cos(th0 + k * s), 0) / k;
+    const Vec3 q(path[i].x(), path[i].y(), p0.z());
+    c.error = std::max(c.error, (q - u).norm());
+    c.deflection = std::max(c.deflection, std::abs((q - p0).dot(n0)));
+  }
+  return c;
+}
+}  // namespace
+
+TEST(BevelTip, TheUnicycleModelHoldsForASoftNeedleAndDepartsForAStiffOne) {
+  const UnicycleCheck soft = unicycleCheck("5e6"), stiff = unicycleCheck("5e8");
+  std::printf("unicycle: E 5 MPa kappa %.4g 1/m, error %.4f mm of %.4f mm (%.3f); E 500 MPa kappa %.4g 1/m, error "
+              "%.4f mm of %.4f mm (%.3f)\n",
+              soft.kappa, 1e3 * soft.error, 1e3 * soft.deflection, soft.error / soft.deflection, stiff.kappa,
+              1e3 * stiff.error, 1e3 * stiff.deflection, stiff.error / stiff.deflection);
+  EXPECT_GT(soft.deflection, 2e-3);  // a real bend: 2.2 mm over 17 mm
+  EXPECT_LT(soft.error / soft.deflection, 0.02);
+  EXPECT_GT(stiff.error / stiff.deflection, 0.15);  // where the model departs
 }
 
 // Duty-cycled spinning (Minhas et al. 2007): spinning the needle over a fraction d of each

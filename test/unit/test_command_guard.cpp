@@ -279,6 +279,50 @@ TEST(CommandGuard, PlansAreCheckedWhole) {
   EXPECT_EQ(g.checkPlan(0, {}, kRest, kDt, false, out), "no waypoints");
 }
 
+// Duty-cycled spinning in a plan (a bevel tip's curvature between its maximum and ~0):
+// the segment becomes whole turns and holds, the turns no faster than the angular limit, the
+// later waypoints' rolls advanced by the turns; bad spins are refused whole, by waypoint.
+TEST(CommandGuard, APlanWithDutyCycledSpinningBecomesWholeTurnsWithinTheLimit) {
+  CommandGuard g = guard();  // max_angular_speed 1 rad/s
+  PlanPoses out;
+  auto wp = [](double t, double x, double rate = 0, double duty = 0) {
+    PlanWaypoint w{t, Vec3(x, 0.01, 0.01), Eigen::Quaterniond::Identity()};
+    w.spin_rate = rate;
+    w.spin_duty = duty;
+    return w;
+  };
+  // Half of 4 pi s spinning at 1 rad/s: one whole turn in 2 pi s, then a hold of 2 pi s.
+  const double t0 = 0.5, T = 4 * M_PI;
+  ASSERT_EQ(g.checkPlan(0, {wp(t0, -0.030, 1.0, 0.5), wp(t0 + T, -0.025)}, kRest, kDt, false, out), "");
+  ASSERT_EQ(out.size(), 3u);
+  EXPECT_NEAR(out[1].first, t0 + T / 2, 1e-12);
+  EXPECT_NEAR(out[1].second.position.x(), -0.0275, 1e-12);
+  EXPECT_NEAR(out[1].second.roll - out[0].second.roll, 2 * M_PI, 1e-12);
+  EXPECT_NEAR(out[2].second.roll - out[0].second.roll, 2 * M_PI, 1e-12);  // the base does not unwind
+  EXPECT_NEAR(out[2].second.position.x(), -0.025, 1e-15);
+  BaseTrajectory traj(kRest);
+  for (const auto& [t, p] : out) traj.add(t, p);
+  const Rates r = sampledRates(traj, t0, t0 + T);
+  EXPECT_LE(r.angular, 1.0 + 1e-3);
+  EXPECT_GT(r.angular, 0.99);  // it does turn, at the rate asked
+  EXPECT_EQ(g.count(GuardRule::Plan), 0u);
+
+  auto refused = [&](const std::vector<PlanWaypoint>& w, const std::string& what) {
+    const std::string why = g.checkPlan(0, w, kRest, kDt, false, out);
+    EXPECT_NE(why.find(what), std::string::npos) << why;
+    EXPECT_TRUE(out.empty());
+  };
+  refused({wp(t0, -0.030, 1.0, 1.5), wp(t0 + T, -0.025)}, "waypoint 0: spin_duty 1.5");
+  refused({wp(t0, -0.030, 1.0, -0.1), wp(t0 + T, -0.025)}, "spin_duty");
+  refused({wp(t0, -0.030, 0.0, 0.5), wp(t0 + T, -0.025)}, "spin_rate > 0");
+  refused({wp(t0, -0.030, 2.0, 0.5), wp(t0 + T, -0.025)}, "spin_rate 2 rad/s, faster than ~max_angular_speed");
+  refused({wp(t0, -0.030), wp(t0 + T, -0.025, 1.0, 0.5)}, "waypoint 1: spin on the last waypoint");
+  refused({wp(t0, -0.030, std::nan(""), 0.5), wp(t0 + T, -0.025)}, "finite");
+  // 0.6 of a turn asked for: rounded to one whole turn, in less time than the rate allows.
+  refused({wp(t0, -0.030, 1.0, 0.5), wp(t0 + 2.4 * M_PI, -0.025)}, "whole turns run at 1.667 rad/s");
+  EXPECT_EQ(g.count(GuardRule::Plan), 7u);
+}
+
 TEST(CommandGuard, LimitsAreValidated) {
   CommandLimits l = limits();
   l.max_speed = 0;

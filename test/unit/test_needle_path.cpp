@@ -128,8 +128,12 @@ TEST(DutyCycledSpin, TheTipFollowsTheSpunBase) {
     const int tip = sim.needle(0).beam().numNodes() - 1;
     const double tip_roll = rollOf(sim.needle(0).state().q[tip]);
     worst = std::max(worst, std::abs(std::remainder(tip_roll - cmd.roll, 2 * M_PI)));
-    if (std::abs(t - 1.5) < 1e-9) EXPECT_NEAR(std::remainder(cmd.roll, 2 * M_PI), 0.0, 1e-9);  // holding after a turn
-    if (std::abs(t - 0.25) < 1e-9) EXPECT_NEAR(cmd.roll, M_PI / 2, 1e-9);                    // a quarter turn in
+    if (std::abs(t - 1.5) < 1e-9) {
+      EXPECT_NEAR(std::remainder(cmd.roll, 2 * M_PI), 0.0, 1e-9);  // holding after a turn
+    }
+    if (std::abs(t - 0.25) < 1e-9) {
+      EXPECT_NEAR(cmd.roll, M_PI / 2, 1e-9);  // a quarter turn in
+    }
   }
   EXPECT_LT(worst, 0.02);  // radians
   EXPECT_NEAR(sim.needle(0).trajectory().pose(4.5).roll, 4 * M_PI, 1e-9);

@@ -42,8 +42,11 @@ TEST(TissueLoads, GravityBodyForceAndTractionsSumToTheirTotals) {
   EXPECT_NEAR(total.y(), 7 * A, 1e-12);
   EXPECT_NEAR(total.z(), -9.81 * 900 * V, 1e-9);
   // The traction's force sits on the face's nodes only.
-  for (int i = 0; i < mesh.numNodes(); ++i)
-    if (mesh.node(i).x() < 1.99) EXPECT_EQ(f[3 * i + 1], 0.0) << i;
+  for (int i = 0; i < mesh.numNodes(); ++i) {
+    if (mesh.node(i).x() < 1.99) {
+      EXPECT_EQ(f[3 * i + 1], 0.0) << i;
+    }
+  }
   // A region that holds no boundary face is refused with its key.
   p.tractions[0].region.box.min = Vec3(0.9, 0.4, 0.4);
   p.tractions[0].region.box.max = Vec3(1.1, 0.6, 0.6);

@@ -95,6 +95,11 @@ struct PlanWaypoint {
   double time = 0;
   Vec3 position = Vec3::Zero();
   Eigen::Quaterniond orientation = Eigen::Quaterniond::Identity();
+  // Duty-cycled spinning over the segment from this waypoint to the next (a bevel tip's
+  // variable curvature; needle/duty_cycled_spin.hpp): a fraction spin_duty in [0, 1] of the
+  // segment's time turning at spin_rate [rad/s], in whole turns. 0: none.
+  double spin_rate = 0;
+  double spin_duty = 0;
 };
 using PlanPoses = std::vector<std::pair<double, BasePose>>;  // (time from start, pose)
 
@@ -138,7 +143,9 @@ class CommandGuard {
   // the waypoints as base poses, or returns why it is refused ("waypoint k: ..."). Each
   // segment is checked over its own duration (a waypoint at the plan's start must be where
   // the base is). inserted: the needle is in the tissue now; wherever its rigid tip lies in
-  // the tissue's box counts as inserted too. Counts GuardRule::Plan when refused.
+  // the tissue's box counts as inserted too. A segment with duty-cycled spinning becomes its
+  // turns and holds in `out`, each within the angular limit. Counts GuardRule::Plan when
+  // refused.
   std::string checkPlan(int n, const std::vector<PlanWaypoint>& waypoints, const BasePose& from, double dt,
                         bool inserted, PlanPoses& out);
 
@@ -157,6 +164,9 @@ class CommandGuard {
 
  private:
   Admission reject(GuardRule r, const std::string& why);
+  // checkPlan's last part: the spinning segments of a checked plan expanded in `out`.
+  std::string spinPlan(const std::vector<PlanWaypoint>& w, const BaseTrajectory& shape,
+                       const std::function<std::string(size_t, const std::string&)>& refuse, PlanPoses& out) const;
   // Checks position and orientation (finite, unit, workspace); converts to a base pose.
   bool checkPose(int n, const Vec3& p, const Eigen::Quaterniond& q, double roll_near, GuardRule& rule,
                  std::string& why, BasePose& pose) const;

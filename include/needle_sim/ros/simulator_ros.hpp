@@ -9,8 +9,9 @@
 //
 // The implementation is split by concern: simulator_ros.cpp (set-up, pacing, stepping,
 // diagnostics), command_input.cpp (poses, plans, tf commands, frames), services.cpp (reset,
-// set_target, predict), display_outputs.cpp (cloud, surface, markers, path, tf frames),
-// insert_action.cpp (the InsertNeedle action), and the helpers beside them.
+// set_target, predict), steer_service.cpp (steer), display_outputs.cpp (cloud, surface,
+// markers, path, tf frames), insert_action.cpp (the InsertNeedle action), and the helpers
+// beside them.
 #include <ros/ros.h>
 
 #include <array>
@@ -28,6 +29,7 @@
 #include <geometry_msgs/PoseStamped.h>
 #include <needle_sim/NeedleTrajectory.h>
 #include <needle_sim/PredictInsertion.h>
+#include <needle_sim/SteerToTarget.h>
 #include <needle_sim/SetTarget.h>
 #include <ros/callback_queue.h>
 #include <std_srvs/Trigger.h>
@@ -78,6 +80,7 @@ class SimulatorRos {
   // step (the timer and its hand-over cost a second wake and its latency).
   void pacedWorker();
   void setStepperPriority();  // ~realtime_priority
+  void restartAfterClockJump(const char* what);  // the clock went back: warn, reset
   bool self_paced_ = false;
   void applyCommands();         // at a step boundary, sim_mutex_ held
   void stepOnce();              // sim_mutex_ held
@@ -109,6 +112,8 @@ class SimulatorRos {
   bool onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   bool onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::SetTarget::Response& res);
   bool onPredict(needle_sim::PredictInsertion::Request& req, needle_sim::PredictInsertion::Response& res);
+  // (steer_service.cpp)
+  bool onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::SteerToTarget::Response& res);
   int needleIndex(const std::string& name) const;  // -1: none; "" is the first
 
   ros::NodeHandle nh_, pnh_;
@@ -157,8 +162,8 @@ class SimulatorRos {
   ros::Publisher status_pub_, target_pub_, target_state_pub_;
   std::vector<ros::Publisher> wrench_pubs_;
   std::unique_ptr<diagnostic_updater::Updater> updater_;
-  ros::ServiceServer reset_srv_, set_target_srv_, predict_srv_;
-  ros::CallbackQueue predict_queue_;  // predictions take their own thread
+  ros::ServiceServer reset_srv_, set_target_srv_, predict_srv_, steer_srv_;
+  ros::CallbackQueue predict_queue_;  // predictions (~predict, ~steer) take their own thread
   std::unique_ptr<ros::AsyncSpinner> predict_spinner_;
   std::thread thread_;
   std::mutex error_mutex_;  // error_job_, errors_latest_, errors_step_, error_busy_, error_stop_

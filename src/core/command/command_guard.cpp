@@ -6,6 +6,7 @@
 
 #include "needle_sim/command/pose_convention.hpp"
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/needle/duty_cycled_spin.hpp"
 
 namespace needle_sim {
 
@@ -332,10 +333,63 @@ std::string CommandGuard::checkPlan(int n, const std::vector<PlanWaypoint>& w, c
       return refuse(k, fmt("angular_speed_inserted: the axis turns at %.4g rad/s in the tissue, faster than "
                            "~max_angular_speed_inserted = %g rad/s",
                            m.axis_turn_inside / span, limits_.max_angular_speed_inserted));
+    if (!std::isfinite(w[k].spin_rate) || w[k].spin_rate < 0 || !std::isfinite(w[k].spin_duty))
+      return refuse(k, "spin_rate and spin_duty must be finite, spin_rate >= 0");
+    if (w[k].spin_duty < 0 || w[k].spin_duty > 1)
+      return refuse(k, fmt("spin_duty %.4g: must be in [0, 1] (the fraction of the segment spent spinning)",
+                           w[k].spin_duty));
+    if (w[k].spin_duty > 0) {
+      if (!(w[k].spin_rate > 0)) return refuse(k, "spin_duty > 0 needs spin_rate > 0");
+      if (k + 1 == w.size()) return refuse(k, "spin on the last waypoint: there is no segment after it to spin over");
+      if (w[k].spin_rate > limits_.max_angular_speed * tol)
+        return refuse(k, fmt("angular_speed: spin_rate %.4g rad/s, faster than ~max_angular_speed = %g rad/s",
+                             w[k].spin_rate, limits_.max_angular_speed));
+    }
     out.emplace_back(t, p);
     prev = p;
     t_prev = t;
   }
+  return spinPlan(w, shape, refuse, out);
+}
+
+std::string CommandGuard::spinPlan(const std::vector<PlanWaypoint>& w, const BaseTrajectory& shape,
+                                   const std::function<std::string(size_t, const std::string&)>& refuse,
+                                   PlanPoses& out) const {
+  bool any = false;
+  for (const PlanWaypoint& x : w) any = any || x.spin_duty > 0;
+  if (!any) return "";
+  // The spinning segments become whole turns and holds (duty_cycled_spin.hpp); the turns are
+  // as fast as spin_rate only up to the rounding to whole turns, so each is checked again.
+  std::vector<NeedleMotionKey> keys;
+  for (size_t k = 0; k < w.size(); ++k) {
+    NeedleMotionKey key;
+    key.t = out[k].first;
+    key.position = out[k].second.position;
+    key.direction = out[k].second.direction;
+    key.roll = out[k].second.roll;
+    key.spin_rate = w[k].spin_rate;
+    key.spin_duty = w[k].spin_duty;
+    keys.push_back(key);
+  }
+  const std::vector<NeedleMotionKey> turns = expandDutyCycledSpin(keys, shape.rest());
+  PlanPoses expanded;
+  size_t k = 0;  // the waypoint whose segment the key is in
+  for (size_t i = 0; i < turns.size(); ++i) {
+    const BasePose p{turns[i].position, turns[i].direction, turns[i].roll};
+    while (k + 1 < w.size() && turns[i].t >= out[k + 1].first) ++k;
+    if (i > 0) {
+      const double span = turns[i].t - expanded.back().first;
+      const SegmentMotion m = segmentMotion(shape, expanded.back().second, p);
+      if (!(span > 0) || m.rotation / span > limits_.max_angular_speed * (1 + 1e-9)) {
+        out.clear();
+        return refuse(k, fmt("angular_speed: the spin's whole turns run at %.4g rad/s, faster than "
+                             "~max_angular_speed = %g rad/s (a longer segment or a lower duty)",
+                             m.rotation / span, limits_.max_angular_speed));
+      }
+    }
+    expanded.emplace_back(turns[i].t, p);
+  }
+  out = std::move(expanded);
   return "";
 }
 
