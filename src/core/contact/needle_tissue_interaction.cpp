@@ -259,8 +259,20 @@ bool NeedleTissueInteraction::updateGeometry() {
       // Along the axis; for a tilted or buckled tip whose axis misses the surface nearby,
       // along the contact normal through the tip (the surface point under a sliding tip).
       const Vec3 n = c->frame.col(0);
-      SurfaceHit hit;
-      if (surface_->firstEntry(x, p - axis * r, p + axis * r, hit) || surface_->firstEntry(x, p + n * r, p - n * r, hit)) {
+      SurfaceHit hit, under;
+      bool found = surface_->firstEntry(x, p - axis * r, p + axis * r, hit);
+      // A tip that slid past a box's edge onto the next face stays on that face while the
+      // face is under it: the axis, tilted back over the edge, also enters the face the tip
+      // left, behind the tip. Taking that one made the contact chatter between the two faces
+      // (the tip pushed back out of the one, released by the other) until the tip fell into
+      // the tissue unpunctured (Interaction.ABuckledTipSlidesOnTheSurfaceAndNeverPassesThroughIt,
+      // with AVX-512 BLAS kernels). Only a face turned by more than 60 degrees counts as
+      // another face (a curved organ surface's neighbouring triangles do not).
+      if ((!found || hit.normal.dot(n) < 0.5) && surface_->firstEntry(x, p + n * r, p - n * r, under)) {
+        hit = under;
+        found = true;
+      }
+      if (found) {
         c->tissue = hit.material;
         c->frame = frameFrom(hit.normal);
       } else {
