@@ -1,16 +1,59 @@
 #include "node_parameters.hpp"
 
+#include <yaml-cpp/yaml.h>
+
 #include <cmath>
+#include <string>
+#include <vector>
 
 #include "needle_sim/core/error.hpp"
 
 namespace needle_sim {
 
+namespace {
+
+// ~set: scene overrides, a list of "key=value" strings. A string is read as YAML, a list or one
+// override: `rosrun ... _set:="['a=1', 'b=2']"` hands the node a string, and taking it for no
+// override (as before) ran the scene without them, silently. Anything else is refused.
+void readOverrides(const ros::NodeHandle& pnh, std::vector<std::string>& out) {
+  XmlRpc::XmlRpcValue set;
+  if (!pnh.getParam("set", set)) return;
+  const char* what = "must be a list of 'key=value' strings (or one such string)";
+  if (set.getType() == XmlRpc::XmlRpcValue::TypeArray) {
+    for (int i = 0; i < set.size(); ++i) {
+      if (set[i].getType() != XmlRpc::XmlRpcValue::TypeString)
+        throw InputError("", "~set", std::string(what) + "; item " + std::to_string(i) + " is not a string");
+      out.push_back(static_cast<std::string>(set[i]));
+    }
+    return;
+  }
+  if (set.getType() != XmlRpc::XmlRpcValue::TypeString) throw InputError("", "~set", what);
+  const std::string text = static_cast<std::string>(set);
+  YAML::Node y;
+  try {
+    y = YAML::Load(text);
+  } catch (const YAML::Exception& e) {
+    throw InputError("", "~set", std::string(what) + "; '" + text + "' is not YAML: " + e.what());
+  }
+  if (y.IsScalar()) {
+    out.push_back(text);
+  } else if (y.IsSequence()) {
+    for (const auto& item : y) {
+      if (!item.IsScalar()) throw InputError("", "~set", std::string(what) + "; '" + text + "' holds a non-string item");
+      out.push_back(item.as<std::string>());
+    }
+  } else if (!y.IsNull()) {
+    throw InputError("", "~set", std::string(what) + ", got '" + text + "'");
+  }
+}
+
+}  // namespace
+
 NodeParameters readParameters(const ros::NodeHandle& pnh) {
   NodeParameters p;
   if (!pnh.getParam("scene", p.scene_file))
     throw InputError("", "~scene", "missing private parameter: the scene YAML file");
-  pnh.param("set", p.overrides, std::vector<std::string>{});
+  readOverrides(pnh, p.overrides);
   pnh.param("deterministic_factor", p.deterministic_factor, p.deterministic_factor);
   pnh.param("tissue_frame", p.tissue_frame, p.tissue_frame);
   if (p.tissue_frame.empty()) throw InputError("", "~tissue_frame", "must not be empty");
