@@ -12,9 +12,10 @@ namespace needle_sim {
 
 namespace {
 
-// ~set: scene overrides, a list of "key=value" strings. A string is read as YAML, a list or one
-// override: `rosrun ... _set:="['a=1', 'b=2']"` hands the node a string, and taking it for no
-// override (as before) ran the scene without them, silently. Anything else is refused.
+// ~set: scene overrides, a list of "key=value" strings. A string is one override (its value
+// is YAML of its own, e.g. a map), or a YAML list when it starts with '[': rosrun's
+// `_set:="['a=1', 'b=2']"` hands the node a string, and taking it for no override (as
+// before) ran the scene without them, silently. Anything else is refused.
 void readOverrides(const ros::NodeHandle& pnh, std::vector<std::string>& out) {
   XmlRpc::XmlRpcValue set;
   if (!pnh.getParam("set", set)) return;
@@ -29,20 +30,24 @@ void readOverrides(const ros::NodeHandle& pnh, std::vector<std::string>& out) {
   }
   if (set.getType() != XmlRpc::XmlRpcValue::TypeString) throw InputError("", "~set", what);
   const std::string text = static_cast<std::string>(set);
+  const size_t first = text.find_first_not_of(" \t");
+  if (first == std::string::npos) return;  // blank: none
+  if (text[first] != '[') {
+    out.push_back(text);
+    return;
+  }
   YAML::Node y;
   try {
     y = YAML::Load(text);
   } catch (const YAML::Exception& e) {
     throw InputError("", "~set", std::string(what) + "; '" + text + "' is not YAML: " + e.what());
   }
-  if (y.IsScalar()) {
-    out.push_back(text);
-  } else if (y.IsSequence()) {
+  if (y.IsSequence()) {
     for (const auto& item : y) {
       if (!item.IsScalar()) throw InputError("", "~set", std::string(what) + "; '" + text + "' holds a non-string item");
       out.push_back(item.as<std::string>());
     }
-  } else if (!y.IsNull()) {
+  } else {
     throw InputError("", "~set", std::string(what) + ", got '" + text + "'");
   }
 }

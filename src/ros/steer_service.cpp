@@ -54,7 +54,8 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
     return refuse(buf);
   }
   if (req.max_predictions < 0) return refuse("max_predictions: must be >= 0 (0: the default)");
-  if (req.max_predictions > 0) q.max_predictions = req.max_predictions;
+  if (req.max_predictions > 0) q.max_predictions = req.max_predictions;  // (the planner refuses > 100)
+  q.max_steps = params_->predict_max_steps;  // as ~predict: a request cannot hold the thread for hours
   Rigid to_tissue;
   if (!toTissue(req.target.header.frame_id, req.target.header.stamp, "~steer", to_tissue))
     return refuse(req.target.header.frame_id.empty()

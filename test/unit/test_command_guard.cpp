@@ -318,9 +318,19 @@ TEST(CommandGuard, APlanWithDutyCycledSpinningBecomesWholeTurnsWithinTheLimit) {
   refused({wp(t0, -0.030, 2.0, 0.5), wp(t0 + T, -0.025)}, "spin_rate 2 rad/s, faster than ~max_angular_speed");
   refused({wp(t0, -0.030), wp(t0 + T, -0.025, 1.0, 0.5)}, "waypoint 1: spin on the last waypoint");
   refused({wp(t0, -0.030, std::nan(""), 0.5), wp(t0 + T, -0.025)}, "finite");
-  // 0.6 of a turn asked for: rounded to one whole turn, in less time than the rate allows.
-  refused({wp(t0, -0.030, 1.0, 0.5), wp(t0 + 2.4 * M_PI, -0.025)}, "whole turns run at 1.667 rad/s");
-  EXPECT_EQ(g.count(GuardRule::Plan), 7u);
+  // 0.6 of a turn asked for: rounded to one whole turn, in less time than the rate allows;
+  // the refusal names the waypoint whose segment spins.
+  refused({wp(t0, -0.030, 1.0, 0.5), wp(t0 + 2.4 * M_PI, -0.025)}, "waypoint 0: angular_speed: the spin's whole turns run at 1.667 rad/s");
+  refused({wp(t0, -0.030), wp(t0 + 1, -0.029, 1.0, 1.0), wp(t0 + 1 + 1.4 * M_PI, -0.028)},
+          "waypoint 1: angular_speed: the spin's whole turns run at 1.429 rad/s");
+  EXPECT_EQ(g.count(GuardRule::Plan), 8u);
+  // Spinning all the time (duty 1), two turns: turn ends only, no hold, times increasing.
+  ASSERT_EQ(g.checkPlan(0, {wp(t0, -0.030, 1.0, 1.0), wp(t0 + T, -0.025)}, kRest, kDt, false, out), "");
+  ASSERT_EQ(out.size(), 3u);
+  EXPECT_NEAR(out[1].first, t0 + T / 2, 1e-12);
+  EXPECT_NEAR(out[1].second.roll - out[0].second.roll, 2 * M_PI, 1e-12);
+  EXPECT_NEAR(out[2].second.roll - out[0].second.roll, 4 * M_PI, 1e-12);
+  for (size_t i = 1; i < out.size(); ++i) EXPECT_GT(out[i].first, out[i - 1].first);
 }
 
 TEST(CommandGuard, LimitsAreValidated) {

@@ -38,10 +38,12 @@ TEST(Steering, RollFlipPlanReachesAnOffAxisTargetAndTheLiveRunAgrees) {
 TEST(Steering, RefusesWhatItCannotPlan) {
   Simulation bevel(loadScene(kPhantom, {"needle.bevel.angle=0.5"}));
   Simulation symmetric(loadScene(kPhantom));
-  auto key = [](const Simulation& s, const Vec3& target, double speed = 0.01) {
+  auto key = [](const Simulation& s, const Vec3& target, double speed = 0.01, int predictions = 8, long steps = 1000000) {
     SteeringRequest r;
     r.target = target;
     r.speed = speed;
+    r.max_predictions = predictions;
+    r.max_steps = steps;
     try {
       planSteering(s, r);
     } catch (const InputError& e) {
@@ -53,4 +55,7 @@ TEST(Steering, RefusesWhatItCannotPlan) {
   EXPECT_EQ(key(bevel, Vec3(0.05, 0.01, 0.01)), "steer.target");   // beyond the 40 mm block
   EXPECT_EQ(key(bevel, Vec3(-0.01, 0.01, 0.01)), "steer.target");  // outside, behind the entry face
   EXPECT_EQ(key(bevel, Vec3(0.018, 0.01, 0.01), 0), "steer.speed");
+  EXPECT_EQ(key(bevel, Vec3(0.018, 0.01, 0.01), 0.01, 101), "steer.max_predictions");
+  // A request whose predictions would run too long is refused before it runs (1 um/s: 18,000 s).
+  EXPECT_EQ(key(bevel, Vec3(0.018, 0.01, 0.01), 1e-6, 8, 100000).rfind("predict.", 0), 0u);
 }

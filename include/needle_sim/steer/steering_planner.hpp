@@ -23,7 +23,8 @@ struct SteeringRequest {
   double roll_rate = M_PI;     // base roll rate for the turns [rad/s]
   double dt = 0;               // prediction time step [s] (0: the scene's)
   double tolerance = 2e-4;     // a plan whose predicted tip-target distance is below this is done [m]
-  int max_predictions = 8;
+  int max_predictions = 8;          // 1 ... 100
+  long max_steps = 1000000;         // per prediction (a longer one is refused: InputError)
 };
 
 // One prediction of the search.

@@ -373,11 +373,11 @@ std::string CommandGuard::spinPlan(const std::vector<PlanWaypoint>& w, const Bas
   }
   const std::vector<NeedleMotionKey> turns = expandDutyCycledSpin(keys, shape.rest());
   PlanPoses expanded;
-  size_t k = 0;  // the waypoint whose segment the key is in
+  size_t k = 0;  // the waypoint whose segment the piece ending at key i is in
   for (size_t i = 0; i < turns.size(); ++i) {
     const BasePose p{turns[i].position, turns[i].direction, turns[i].roll};
-    while (k + 1 < w.size() && turns[i].t >= out[k + 1].first) ++k;
     if (i > 0) {
+      while (k + 1 < w.size() && turns[i - 1].t >= out[k + 1].first) ++k;
       const double span = turns[i].t - expanded.back().first;
       const SegmentMotion m = segmentMotion(shape, expanded.back().second, p);
       if (!(span > 0) || m.rotation / span > limits_.max_angular_speed * (1 + 1e-9)) {

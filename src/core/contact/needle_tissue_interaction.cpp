@@ -267,8 +267,9 @@ bool NeedleTissueInteraction::updateGeometry() {
       // (the tip pushed back out of the one, released by the other) until the tip fell into
       // the tissue unpunctured (Interaction.ABuckledTipSlidesOnTheSurfaceAndNeverPassesThroughIt,
       // with AVX-512 BLAS kernels). Only a face turned by more than 60 degrees counts as
-      // another face (a curved organ surface's neighbouring triangles do not).
-      if ((!found || hit.normal.dot(n) < 0.5) && surface_->firstEntry(x, p + n * r, p - n * r, under)) {
+      // another face (a curved organ surface's neighbouring triangles do not), and only one
+      // entered behind the tip: a steeper face ahead (a crease) is the tip's next contact.
+      if ((!found || (hit.normal.dot(n) < 0.5 && hit.t < 0.5)) && surface_->firstEntry(x, p + n * r, p - n * r, under)) {
         hit = under;
         found = true;
       }

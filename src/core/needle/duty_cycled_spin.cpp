@@ -38,7 +38,7 @@ std::vector<NeedleMotionKey> expandDutyCycledSpin(const std::vector<NeedleMotion
       // End of this cycle's turn, then (unless the cycle is all turning) end of its hold.
       const double s_turn = (c + duty) / N, s_end = (c + 1.0) / N;
       if (s_turn < 1) out.push_back(key(s_turn, 2 * M_PI * (c + 1)));
-      if (c + 1 < N) out.push_back(key(s_end, 2 * M_PI * (c + 1)));
+      if (c + 1 < N && duty < 1) out.push_back(key(s_end, 2 * M_PI * (c + 1)));  // (duty 1: no hold)
     }
     turned += 2 * M_PI * N;
   }

@@ -56,7 +56,8 @@ SteeringPlan planSteering(const Simulation& live, const SteeringRequest& req) {
   if (!(req.speed > 0) || !std::isfinite(req.speed)) throw InputError("", "steer.speed", "must be > 0");
   if (!(req.roll_rate > 0) || !std::isfinite(req.roll_rate)) throw InputError("", "steer.roll_rate", "must be > 0");
   if (!(req.tolerance > 0)) throw InputError("", "steer.tolerance", "must be > 0");
-  if (req.max_predictions < 1) throw InputError("", "steer.max_predictions", "must be >= 1");
+  if (req.max_predictions < 1 || req.max_predictions > 100)
+    throw InputError("", "steer.max_predictions", "must be in [1, 100]");
   if (!req.target.allFinite()) throw InputError("", "steer.target", "must be finite");
   // The target must be tissue (rest position; the planner runs before the insertion).
   live.embedPoint(PointLocator(live.tissue().mesh()), req.target, "", "steer.target", "the target");
@@ -84,7 +85,7 @@ SteeringPlan planSteering(const Simulation& live, const SteeringRequest& req) {
   auto predict = [&](double r, double s, double A) {
     const auto t1 = steadyNow();
     InsertionPlan plan = rollFlipPlan(live, req, r, s, A);
-    const Prediction p = predictInsertion(live, plan);
+    const Prediction p = predictInsertion(live, plan, req.max_steps);
     SteeringIterate it{r, s, A, p.samples.back().tips[req.needle], 0, 0};
     it.distance = (it.tip - req.target).norm();
     it.ms = msSince(t1);
