@@ -23,6 +23,11 @@ int SimulatorRos::needleIndex(const std::string& name) const {
   return -1;
 }
 
+std::string SimulatorRos::frameRefusal(const std::string& field, const std::string& frame) const {
+  if (frame.empty()) return field + ": empty frame_id (rule empty_frame: set it, or ~allow_empty_frame)";
+  return field + ": frame '" + frame + "' has no transform to '" + params_->tissue_frame + "' (rule frame)";
+}
+
 bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
   std::lock_guard<std::mutex> lk(sim_mutex_);
   try {
@@ -76,10 +81,7 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
   plan.target_error = params_->target_error_period > 0;
   Rigid to_tissue;
   if (!toTissue(req.trajectory.header.frame_id, req.trajectory.header.stamp, "~predict", to_tissue))
-    return refuse(req.trajectory.header.frame_id.empty()
-                      ? std::string("trajectory: empty frame_id (rule empty_frame: set it, or ~allow_empty_frame)")
-                      : "trajectory: frame '" + req.trajectory.header.frame_id + "' has no transform to '" +
-                            params_->tissue_frame + "' (rule frame)");
+    return refuse(frameRefusal("trajectory", req.trajectory.header.frame_id));
   std::unique_ptr<Simulation> snapshot;
   int target = -1;
   {

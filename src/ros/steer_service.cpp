@@ -58,10 +58,7 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
   q.max_steps = params_->predict_max_steps;  // as ~predict: a request cannot hold the thread for hours
   Rigid to_tissue;
   if (!toTissue(req.target.header.frame_id, req.target.header.stamp, "~steer", to_tissue))
-    return refuse(req.target.header.frame_id.empty()
-                      ? std::string("target: empty frame_id (rule empty_frame: set it, or ~allow_empty_frame)")
-                      : "target: frame '" + req.target.header.frame_id + "' has no transform to '" +
-                            params_->tissue_frame + "' (rule frame)");
+    return refuse(frameRefusal("target", req.target.header.frame_id));
   q.target = to_tissue.apply(fromPoint(req.target.point));
   std::unique_ptr<Simulation> snapshot;
   BasePose rest;

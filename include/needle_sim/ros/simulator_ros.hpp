@@ -115,6 +115,8 @@ class SimulatorRos {
   // (steer_service.cpp)
   bool onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::SteerToTarget::Response& res);
   int needleIndex(const std::string& name) const;  // -1: none; "" is the first
+  // Why a service refuses a request whose `field` is in a frame toTissue could not take.
+  std::string frameRefusal(const std::string& field, const std::string& frame) const;
 
   ros::NodeHandle nh_, pnh_;
   std::unique_ptr<NodeParameters> params_;
