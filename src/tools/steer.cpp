@@ -25,6 +25,7 @@ int steerCommand(const SteerOptions& o) {
   if (sim.numNeedles() == 0) throw InputError(o.scene, "needle", "the scene has no needle to steer");
   req.target = Vec3(o.target[0], o.target[1], o.target[2]);
   req.speed = o.speed;
+  req.roll_rate = o.roll_rate;
   req.dt = o.dt;
   req.tolerance = o.tolerance;
   req.max_predictions = o.max_predictions;
@@ -34,8 +35,10 @@ int steerCommand(const SteerOptions& o) {
               plan.kappa);
   for (size_t i = 0; i < plan.iterations.size(); ++i) {
     const SteeringIterate& it = plan.iterations[i];
-    std::printf("  %zu: roll %8.4f rad, flip at %7.3f mm, advance %7.3f mm -> distance %7.3f mm (%.2f s)\n", i + 1,
-                it.roll, 1e3 * std::min(it.flip_depth, it.advance), 1e3 * it.advance, 1e3 * it.distance, it.ms / 1e3);
+    std::printf("  %zu: roll %8.4f rad, flip at %7.3f mm, advance %7.3f mm -> distance %7.3f mm (%.2f s, %d steps%s)\n",
+                i + 1, it.roll, 1e3 * std::min(it.flip_depth, it.advance), 1e3 * it.advance, 1e3 * it.distance,
+                it.ms / 1e3, it.steps_run,
+                it.resumed_at > 0 ? (" from " + std::to_string(it.resumed_at).substr(0, 5) + " s").c_str() : "");
   }
   std::printf("plan: roll %.4f rad, %s, advance %.3f mm; predicted tip (%.6f, %.6f, %.6f) m, %.3f mm from the target%s\n",
               plan.roll,
@@ -57,7 +60,8 @@ int steerCommand(const SteerOptions& o) {
     j["waypoints"].push_back({{"t", t}, {"position", {p.position.x(), p.position.y(), p.position.z()}}, {"roll", p.roll}});
   for (const SteeringIterate& it : plan.iterations)
     j["iterations"].push_back({{"roll", it.roll}, {"flip_depth", it.flip_depth}, {"advance", it.advance},
-                               {"distance", it.distance}, {"seconds", it.ms / 1e3}});
+                               {"distance", it.distance}, {"seconds", it.ms / 1e3},
+                               {"steps_run", it.steps_run}, {"resumed_at", it.resumed_at}});
   if (o.live) {
     // The plan on the live simulation at the scene's own time step (the predictions may
     // have used a coarser one).

@@ -6,6 +6,7 @@
 // prediction starts from exactly its state; it may step with a coarser time step than the
 // live run (implicit Euler is unconditionally stable), which is what makes it faster than
 // real time; `needle_sim predict --compare` reports what the coarser step costs in accuracy.
+#include <memory>
 #include <string>
 #include <utility>
 #include <vector>
@@ -35,19 +36,45 @@ struct PredictionSample {
   std::vector<double> target_error_bounds;  // per target, with InsertionPlan::target_error (NaN: failed)
 };
 
+// The predicted state part way through a plan, kept to run another plan from it: plans that
+// agree up to its time (a shooting method's iterates sharing their first leg, e.g. the
+// steering planner's flip depths) need not simulate that part again.
+struct PredictionCheckpoint {
+  long step = 0;                            // steps from now
+  double t = 0;                             // time from now [s]
+  std::shared_ptr<const Simulation> sim;    // the predicted state then
+  std::vector<PredictionSample> samples;    // the samples up to it
+  double next_sample = 0;                   // when the next sample is due [s from now]
+};
+
 struct Prediction {
   std::vector<PredictionSample> samples;  // the first is the current state (t = 0)
-  int steps = 0;
+  int steps = 0;                          // all of the plan's, including those a checkpoint saved
+  int steps_run = 0;                      // simulated by this call
   int max_dofs = 0;
   double copy_ms = 0, run_ms = 0;  // copying the simulation, simulating the plan
-  StepStats totals;                // phases summed over the steps (where run_ms goes)
+  StepStats totals;                // phases summed over the steps run (where run_ms goes)
   int mesh_changes = 0;
+  std::vector<PredictionCheckpoint> checkpoints;  // those asked for (PredictionReuse)
+};
+
+// Reusing work between predictions of plans that share a beginning.
+struct PredictionReuse {
+  // Start from this checkpoint (made by a prediction from the same live state) instead of
+  // from now. The plan must command the same base poses as the checkpoint's up to its time
+  // (checked, to 1e-12: InputError "predict.resume" otherwise); the result is then that of
+  // the whole prediction, up to rounding.
+  const PredictionCheckpoint* resume = nullptr;
+  // Keep a checkpoint at the first step at or after each of these times from now (each a
+  // deep copy of the simulation: memory, and about as long to make as a step).
+  std::vector<double> checkpoint_times;
 };
 
 // Throws InputError (key "predict.<field>") for a plan that cannot run (a needle out of
 // range, non-finite or non-increasing waypoint times, non-finite poses, a negative dt,
 // nothing to simulate, more than max_steps steps), before any work; NumericalError when the
 // predicted run fails (the live simulation is unaffected either way).
-Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, long max_steps = 1000000);
+Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, long max_steps = 1000000,
+                            const PredictionReuse& reuse = {});
 
 }  // namespace needle_sim

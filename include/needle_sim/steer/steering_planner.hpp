@@ -33,6 +33,8 @@ struct SteeringIterate {
   Vec3 tip = Vec3::Zero();                       // predicted final tip
   double distance = 0;                           // to the target [m]
   double ms = 0;                                 // the prediction's wall time
+  double resumed_at = 0;  // it started from an earlier prediction's checkpoint this long after now [s] (0: from now)
+  int steps_run = 0;      // steps simulated (fewer than the plan's when resumed)
 };
 
 struct SteeringPlan {

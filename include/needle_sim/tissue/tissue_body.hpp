@@ -126,7 +126,9 @@ class TissueBody {
   std::unique_ptr<SystemSolver> solver_;
   VecX rest_, x_, v_, f_ext_, mass_, mass_free_;
   VecX scene_f_ext_;
-  VecX dv_free_;  // last increment: warm start for CG
+  VecX dv_free_;     // this step's increment (free motion, then the constraint correction)
+  VecX free_guess_, free_guess2_;  // the last two free motions: CG's initial guess for the next
+  double step_h_ = 0;              // the time step the factor and the columns are for (0: none yet)
   ElementBlocks support_;
   mutable ComplianceCache columns_;
 };

@@ -1,5 +1,6 @@
 #include "needle_sim/sim/prediction.hpp"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -68,25 +69,66 @@ long requireRunnable(const Simulation& live, const InsertionPlan& plan, long max
   }
   return static_cast<long>(steps);
 }
+
+// The plan's commanded poses up to time t (from now) must be the checkpoint's: both
+// piecewise linear, so comparing at every keyframe of either up to t, and at t, suffices.
+void requireSameBeginning(const Simulation& live, const InsertionPlan& plan, double dt, const PredictionCheckpoint& cp) {
+  const double now = live.time();
+  const BaseTrajectory& had = cp.sim->needle(plan.needle).trajectory();
+  BaseTrajectory wants = had;
+  wants.replaceFrom(now, dt, plan.waypoints);
+  std::vector<double> times{now, now + cp.t};
+  for (const auto& [t, p] : had.keyframesAfter(now - 1)) times.push_back(t);
+  for (const auto& [t, p] : wants.keyframesAfter(now - 1)) times.push_back(t);
+  for (double t : times) {
+    if (t > now + cp.t) continue;
+    const BasePose a = had.pose(t), b = wants.pose(t);
+    if ((a.position - b.position).norm() > 1e-12 || (a.direction - b.direction).norm() > 1e-12 ||
+        std::abs(a.roll - b.roll) > 1e-12) {
+      std::ostringstream m;
+      m << "the plan commands another pose than the checkpoint's at " << t - now << " s from now, before the checkpoint ("
+        << cp.t << " s): " << (a.position - b.position).norm() << " m, " << std::abs(a.roll - b.roll) << " rad apart";
+      throw InputError("", "predict.resume", m.str());
+    }
+  }
+}
+
 }  // namespace
 
-Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, long max_steps) {
+Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, long max_steps,
+                            const PredictionReuse& reuse) {
   double dt = 0, duration = 0;
   const long steps = requireRunnable(live, plan, max_steps, dt, duration);
+  const PredictionCheckpoint* cp = reuse.resume;
+  if (cp) {
+    if (!cp->sim || cp->step < 1 || cp->step >= steps || std::abs(cp->sim->time() - live.time() - cp->t) > 1e-9 * dt ||
+        cp->sim->dt() != dt)
+      throw InputError("", "predict.resume", "the checkpoint is not from a prediction of this state at this time step");
+    requireSameBeginning(live, plan, dt, *cp);
+  }
   Prediction out;
   auto t0 = steadyNow();
-  Simulation sim(live);
+  Simulation sim(cp ? *cp->sim : live);
   out.copy_ms = msSince(t0);
   t0 = steadyNow();
   if (dt != sim.dt()) sim.setTimeStep(dt);
-  const double now = sim.time();
+  const double now = live.time();
   // The plan replaces the needle's commands from now on; the other needles hold what they
   // were commanded (a copy of their trajectories).
   sim.needle(plan.needle).trajectory().replaceFrom(now, dt, plan.waypoints);
-  out.samples.push_back(sampleOf(sim, 0.0, plan.needle, plan.target_error));
-  out.max_dofs = sim.numDofs();
   double next = plan.sample_period;
-  for (long k = 1; k <= steps; ++k) {
+  if (cp) {
+    out.samples = cp->samples;
+    next = cp->next_sample;
+  } else {
+    out.samples.push_back(sampleOf(sim, 0.0, plan.needle, plan.target_error));
+  }
+  out.max_dofs = sim.numDofs();
+  std::vector<double> wanted = reuse.checkpoint_times;
+  std::sort(wanted.begin(), wanted.end());
+  size_t w = 0;
+  const long first = cp ? cp->step + 1 : 1;
+  for (long k = first; k <= steps; ++k) {
     const StepStats& st = sim.step();  // NumericalError propagates: the caller reports it
     out.totals.accumulate(st);
     out.mesh_changes += st.mesh_changed;
@@ -96,8 +138,13 @@ Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, l
       out.samples.push_back(sampleOf(sim, t, plan.needle, plan.target_error));
       while (next <= t + 1e-9 * dt) next += plan.sample_period > 0 ? plan.sample_period : dt;
     }
+    bool keep = false;
+    while (w < wanted.size() && wanted[w] <= t + 1e-9 * dt) keep = true, ++w;
+    if (keep && k < steps)
+      out.checkpoints.push_back({k, t, std::make_shared<const Simulation>(sim), out.samples, next});
   }
   out.steps = static_cast<int>(steps);
+  out.steps_run = static_cast<int>(steps - first + 1);
   out.run_ms = msSince(t0);
   return out;
 }

@@ -30,8 +30,11 @@ InsertionPlan rollFlipPlan(const Simulation& live, const SteeringRequest& req, d
   plan.needle = req.needle;
   plan.dt = req.dt;
   double t = 0;
+  // No leg shorter than a step: a waypoint sooner than that would be moved to it when the
+  // plan is installed (BaseTrajectory::replaceFrom), changing the legs' speeds.
+  const double step = req.dt > 0 ? req.dt : live.dt();
   auto at = [&](double dt_leg, double s, double r) {
-    t += std::max(dt_leg, 1e-3);
+    t += std::max(dt_leg, step);
     plan.waypoints.push_back({t, BasePose{p0.position + p0.direction * s, p0.direction, r}});
   };
   const double s = std::clamp(flip_depth, 0.0, advance);
@@ -82,13 +85,32 @@ SteeringPlan planSteering(const Simulation& live, const SteeringRequest& req) {
 
   SteeringPlan best;
   best.distance = std::numeric_limits<double>::infinity();
+  // Checkpoints along the first leg (before the flip) of the predictions at one roll: a plan
+  // with the same roll shares that leg up to its own flip, so it starts from the deepest
+  // checkpoint before it and simulates only the rest (the result is the same, to rounding).
+  // Kept for one roll at a time, every 1/16 of the advance (a few tens of deep copies).
+  std::vector<PredictionCheckpoint> checkpoints;
+  double checkpoint_roll = std::numeric_limits<double>::quiet_NaN();
   auto predict = [&](double r, double s, double A) {
     const auto t1 = steadyNow();
     InsertionPlan plan = rollFlipPlan(live, req, r, s, A);
-    const Prediction p = predictInsertion(live, plan, req.max_steps);
+    if (!(r == checkpoint_roll)) checkpoints.clear(), checkpoint_roll = r;
+    const double turned = plan.waypoints.front().first;                     // the bevel turned to r
+    const double leg_end = s > 0 ? plan.waypoints[1].first : turned;         // the flip starts (or the advance ends)
+    PredictionReuse reuse;
+    for (const auto& c : checkpoints)
+      if (c.t <= leg_end) reuse.resume = &c;
+    const double spacing = std::max(A / 16, 10 * (req.dt > 0 ? req.dt : live.dt()) * req.speed) / req.speed;
+    for (double tc = turned + spacing; tc < leg_end; tc += spacing)
+      if (!reuse.resume || tc > reuse.resume->t) reuse.checkpoint_times.push_back(tc);
+    Prediction p = predictInsertion(live, plan, req.max_steps, reuse);
+    for (auto& c : p.checkpoints) checkpoints.push_back(std::move(c));
+    std::sort(checkpoints.begin(), checkpoints.end(), [](const auto& a, const auto& b) { return a.t < b.t; });
     SteeringIterate it{r, s, A, p.samples.back().tips[req.needle], 0, 0};
     it.distance = (it.tip - req.target).norm();
     it.ms = msSince(t1);
+    it.resumed_at = reuse.resume ? reuse.resume->t : 0.0;
+    it.steps_run = p.steps_run;
     best.iterations.push_back(it);
     if (it.distance < best.distance) {
       best.roll = r, best.flip_depth = s, best.advance = A;
@@ -107,7 +129,11 @@ SteeringPlan planSteering(const Simulation& live, const SteeringRequest& req) {
   auto reach = [&](const SteeringIterate& p) { return (p.tip - tip0).dot(u); };
   best.kappa = 2 * reach(it) / std::pow(std::max((it.tip - tip0).dot(a), 1e-6), 2);
   double g_hi = reach(it) - lat.norm();  // in-plane overshoot of the full arc
-  if (best.kappa > 0 && std::abs(reach(it)) > 1e-9) roll += std::atan2((req.target - it.tip).dot(w), reach(it));
+  // (An out-of-plane miss far below the tolerance, e.g. rounding in a symmetric scene, is
+  // left alone: the same roll lets the next predictions start from this one's checkpoints.)
+  const double out_of_plane = (req.target - it.tip).dot(w);
+  if (best.kappa > 0 && std::abs(reach(it)) > 1e-9 && std::abs(out_of_plane) > 0.01 * req.tolerance)
+    roll += std::atan2(out_of_plane, reach(it));
   A = std::max(A + (req.target - it.tip).dot(a), 1e-4);
   // 2. Beyond its reach the full arc is the plan. Otherwise the flip depth s in [0, A] is
   //    found by regula falsi (Illinois) on the in-plane overshoot g(s), which grows with s
