@@ -104,12 +104,13 @@ SteeringPlan planSteering(const Simulation& live, const SteeringRequest& req) {
     for (double tc = turned + spacing; tc < leg_end; tc += spacing)
       if (!reuse.resume || tc > reuse.resume->t) reuse.checkpoint_times.push_back(tc);
     Prediction p = predictInsertion(live, plan, req.max_steps, reuse);
+    const double resumed_at = reuse.resume ? reuse.resume->t : 0.0;  // before `checkpoints` grows
     for (auto& c : p.checkpoints) checkpoints.push_back(std::move(c));
     std::sort(checkpoints.begin(), checkpoints.end(), [](const auto& a, const auto& b) { return a.t < b.t; });
     SteeringIterate it{r, s, A, p.samples.back().tips[req.needle], 0, 0};
     it.distance = (it.tip - req.target).norm();
     it.ms = msSince(t1);
-    it.resumed_at = reuse.resume ? reuse.resume->t : 0.0;
+    it.resumed_at = resumed_at;
     it.steps_run = p.steps_run;
     best.iterations.push_back(it);
     if (it.distance < best.distance) {
