@@ -135,3 +135,67 @@ TEST(SystemSolver, StaleFactorPcgMatchesDirectSolve) {
   const VecX ref = s.dense(cm, ck).ldlt().solve(b);
   EXPECT_LT((xs - ref).norm(), 1e-10 * ref.norm());
 }
+
+// Refreshing on the calling thread (static Newton), CG on a stale factor stops once it has
+// cost about a factorisation (SystemSolver::staleBudget), refactorises and solves on; the
+// factor it made is then not refreshed again for the next call with the same matrix (it
+// was, before 2026-12-03: a factorisation per Newton iteration in the brain-shift pre-step).
+TEST(SystemSolver, SynchronousRefreshStopsCgAtTheCostOfAFactorisation) {
+  const double cm = 0.0, ck = 1.0;  // a static Newton system
+  auto rotated = [](SolverSetup& s) {
+    VecX x = s.mesh.restPositions();
+    for (int i = 0; i < s.mesh.numNodes(); ++i) {
+      const Vec3 p = s.mesh.node(i);
+      const double th = 40.0 * (0.04 - p[0]);  // up to 1.6 rad, zero at the clamped end
+      x.segment<3>(3 * i) = Vec3(p[0], p[1] * std::cos(th) - p[2] * std::sin(th), p[1] * std::sin(th) + p[2] * std::cos(th));
+    }
+    s.model.updateRotations(x);
+  };
+  LinearSolverSettings set;
+  set.tolerance = 1e-10;
+  set.refresh_iterations = 2;
+  set.max_iterations = 500;
+  set.async = false;
+  SolverSetup s;
+  const VecX b = VecX::LinSpaced(s.dofs.numFree(), -1, 1);
+  const VecX b2 = VecX::LinSpaced(s.dofs.numFree(), 2, -1);
+
+  // Without a budget (background refreshes: CG goes on with the stale factor) it takes many
+  // iterations: the comparison below can fail.
+  int unbounded = 0;
+  {
+    SolverSetup u;
+    LinearSolverSettings a = set;
+    a.async = true;
+    SystemSolver solver(u.model, u.dofs, a);
+    VecX x;
+    EXPECT_TRUE(solver.solve(u.mass_free, cm, ck, b, x).refactored);
+    rotated(u);
+    x.setZero(b.size());
+    const auto st = solver.solve(u.mass_free, cm, ck, b, x);
+    EXPECT_FALSE(st.refactored);
+    unbounded = st.iterations;
+  }
+
+  SystemSolver solver(s.model, s.dofs, set);
+  VecX x;
+  EXPECT_TRUE(solver.solve(s.mass_free, cm, ck, b, x).refactored);
+  const CholmodSolver& f = solver.factor();
+  const int budget = std::max(set.refresh_iterations + 1,
+                              static_cast<int>(std::ceil(f.factorFlops() / (4.0 * f.factorNonzeros()) / 10.0)));
+  ASSERT_GT(unbounded, budget + 3) << "the rotation does not make the factor stale enough for this test";
+  rotated(s);
+  x.setZero(b.size());
+  const auto st = solver.solve(s.mass_free, cm, ck, b, x);
+  EXPECT_TRUE(st.refactored);
+  EXPECT_TRUE(st.budget_exhausted);
+  EXPECT_LE(st.iterations, budget + 3);  // the budget on the stale factor, then a few on the new one
+  const Eigen::MatrixXd A = s.dense(cm, ck);
+  EXPECT_LT((x - A.ldlt().solve(b)).norm(), 1e-8 * x.norm());
+  // The same matrix again: the factor just made serves it.
+  VecX x2;
+  const auto st2 = solver.solve(s.mass_free, cm, ck, b2, x2);
+  EXPECT_FALSE(st2.refactored);
+  EXPECT_LE(st2.iterations, 2);
+  EXPECT_LT((x2 - A.ldlt().solve(b2)).norm(), 1e-8 * x2.norm());
+}

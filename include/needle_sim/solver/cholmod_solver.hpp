@@ -44,7 +44,8 @@ class CholmodSolver {
   int size() const { return n_; }
   long analyses() const { return analyses_; }
   long factorizations() const { return factorizations_; }
-  // Nonzeros of L and flop count of the last factorisation, for reports.
+  // Nonzeros of L and flop count of a factorisation, from the analysis (reports, and the
+  // cost of a refactorisation against CG iterations: SystemSolver).
   double factorNonzeros() const;
   double factorFlops() const;
   bool supernodal() const;
@@ -58,6 +59,7 @@ class CholmodSolver {
   mutable cholmod_dense_struct* e_ = nullptr;
   Ordering ordering_;
   int n_ = 0;
+  double lnz_ = 0, flops_ = 0;
   bool factored_ = false;
   long analyses_ = 0, factorizations_ = 0;
 };

@@ -10,7 +10,8 @@
 //    factor of an earlier A. The corotational A changes only through the element rotations,
 //    so a factor a few steps old is a near-exact preconditioner (Courtecuisse et al.); it is
 //    refreshed when CG needs more than `refresh_iterations`, every `refactor_every` calls if
-//    set, or when CG fails. The answer satisfies the same tolerance either way.
+//    set, or when CG fails (refreshing on the calling thread: when CG has run as many
+//    iterations as a factorisation costs, staleBudget()). The answer satisfies the same tolerance either way.
 //
 // The refresh is asynchronous by default (`async`, doc/method.md "Time integration"): the
 // element rotations of the call that asks for it are captured, and a background thread
@@ -64,6 +65,7 @@ struct LinearSolveStats {
   int iterations = 0;           // CG iterations (0 for a direct solve)
   double relative_residual = 0;
   bool refactored = false;      // a factorisation on this call's thread
+  bool budget_exhausted = false;  // ... because CG on the stale factor ran out of its budget
   double assemble_ms = 0, factor_ms = 0, solve_ms = 0;
   bool async_started = false;   // a background refresh was requested
   bool async_swapped = false;   // a background factor was swapped in
@@ -149,6 +151,9 @@ class SystemSolver {
   // Waits for the pending refresh and makes it the factor in use (false: it failed, and a
   // synchronous refactorisation is due).
   bool finishRefresh(LinearSolveStats& st);
+  // CG iterations on a stale factor before refactorising (synchronous refreshes: those that
+  // cost less than a factorisation; asynchronous: max_iterations).
+  int staleBudget() const;
   void dropRefresh();
 
   const CorotationalHexModel& model_;

@@ -62,6 +62,8 @@ CholmodSolver::CholmodSolver(const CholmodSolver& o) : CholmodSolver(o.ordering_
     if (!factor_) throw std::runtime_error("CHOLMOD could not copy a factor (status " + std::to_string(common_->status) + ")");
   }
   n_ = o.n_;
+  lnz_ = o.lnz_;
+  flops_ = o.flops_;
   factored_ = o.factored_;
   analyses_ = o.analyses_;
   factorizations_ = o.factorizations_;
@@ -83,6 +85,9 @@ void CholmodSolver::analyze(const SparseMatrix& upper) {
   factor_ = cholmod_analyze(&A, common_);
   if (!factor_) throw std::runtime_error("CHOLMOD analysis failed (status " + std::to_string(common_->status) + ")");
   n_ = static_cast<int>(upper.rows());
+  // The analysis's counts for the chosen ordering (kept: a copy's common has none).
+  lnz_ = common_->lnz;
+  flops_ = common_->fl;
   ++analyses_;
 }
 
@@ -131,8 +136,8 @@ void CholmodSolver::solve(const Eigen::MatrixXd& Bm, Eigen::MatrixXd& X) const {
   cholmod_free_dense(&Xd, common_);
 }
 
-double CholmodSolver::factorNonzeros() const { return common_->lnz; }
-double CholmodSolver::factorFlops() const { return common_->fl; }
+double CholmodSolver::factorNonzeros() const { return lnz_; }
+double CholmodSolver::factorFlops() const { return flops_; }
 bool CholmodSolver::supernodal() const { return factor_ && factor_->is_super; }
 std::string CholmodSolver::orderingName() const {
   if (!factor_) return "none";

@@ -1,6 +1,8 @@
 #include "needle_sim/solver/system_solver.hpp"
 
+#include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <chrono>
 #include <thread>
 
@@ -209,15 +211,20 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
   auto M = [&](const VecX& r, VecX& z) { chol_->solve(r, z); };
   if (x.size() != b.size() || !x.allFinite()) x.setZero(b.size());
   const double tol = tolerance > 0 ? tolerance : settings_.tolerance;
-  PcgResult r = pcg(A, M, b, x, tol, settings_.max_iterations);
+  PcgResult r = pcg(A, M, b, x, tol, st.refactored ? settings_.max_iterations : staleBudget());
+  int on_last_factor = r.iterations;  // CG iterations with the factor this call ends with
   // The preconditioner is too far off: take the pending refresh (waiting for it) and solve
   // again; if that is not enough either (it was made for an older matrix), refresh now.
   for (int attempt = 0; attempt < 2 && !r.converged && !st.refactored; ++attempt) {
     st.solve_ms += msSince(t0);
-    if (!(attempt == 0 && pending_ && finishRefresh(st))) refactor(mass_free, c_m, c_k, st);
+    if (!(attempt == 0 && pending_ && finishRefresh(st))) {
+      refactor(mass_free, c_m, c_k, st);
+      st.budget_exhausted = true;
+    }
     t0 = steadyNow();
     const int first = r.iterations;
     r = pcg(A, M, b, x, tol, settings_.max_iterations);
+    on_last_factor = r.iterations;
     r.iterations += first;
   }
   st.solve_ms += msSince(t0) + st.async_wait_ms;
@@ -226,8 +233,26 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
   if (!r.converged || !x.allFinite())
     throw NumericalError(-1, "conjugate gradients did not converge (relative residual " +
                                  std::to_string(r.relative_residual) + ")");
-  if (r.iterations > settings_.refresh_iterations && !pending_) stale_ = true;
+  // Judged on the factor now in use: one just made for this matrix is not stale, however
+  // many iterations the old one took first (a second refactorisation at the next call, for
+  // nearly the same matrix, cost static Newton a factorisation per iteration).
+  if (on_last_factor > settings_.refresh_iterations && !pending_) stale_ = true;
   return st;
+}
+
+int SystemSolver::staleBudget() const {
+  if (async_) return settings_.max_iterations;
+  // Refreshing on this thread: CG on a stale factor goes on only while its iterations cost
+  // less than a refactorisation (then it refactors and solves again from where it got: never
+  // more than twice the cost of refactorising at once, and nothing lost when CG is
+  // nearly done). Costs from the factor's flop count and nonzeros (deterministic: the
+  // same scene and settings take the same path): one iteration is two triangular solves,
+  // about 4 nnz(L) flops, which run memory-bound at about a tenth of the factorisation's
+  // dense-kernel rate (measured: 5-14x on the DBS meshes, 2026-12-03).
+  constexpr double kFactorToSolveRate = 10.0;
+  const double lnz = chol_->factorNonzeros();
+  const double iterations = lnz > 0 ? chol_->factorFlops() / (4.0 * lnz) / kFactorToSolveRate : 0.0;
+  return std::clamp(static_cast<int>(std::ceil(iterations)), settings_.refresh_iterations + 1, settings_.max_iterations);
 }
 
 LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m, double c_k, const Eigen::MatrixXd& B,

@@ -98,6 +98,7 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
   double rn = 0, gw = 1;
   const double lin_tol = solver_->settings().tolerance;
   bool tight = true;  // the last correction was solved to the solver's own tolerance
+  bool refactor_next = false;
   for (int it = 0; it <= max_iterations; ++it) {
     auto t0 = steadyNow();
     if (it == 0) {
@@ -136,7 +137,13 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
                          : lin_tol;
     if (small_step) eta = lin_tol;
     tight = eta <= lin_tol;
-    accumulate(st, solver_->solve(mass_free_, 0.0, 1.0, r, dx_free, eta));
+    // The last correction's CG ran out of its budget on the stale factor (the contact set or
+    // the load moved the tangent far): this one's tangent has moved as far, so refactorise
+    // at once instead of paying the budget again first.
+    if (refactor_next) solver_->invalidate();
+    const LinearSolveStats ls = solver_->solve(mass_free_, 0.0, 1.0, r, dx_free, eta);
+    refactor_next = ls.budget_exhausted;
+    accumulate(st, ls);
     double ds = 0;
     if (control) {
       // w = K^-1 unit (warm-started from the last one: K changes little between steps), then
