@@ -3,6 +3,9 @@
 // linear field zero, refine-then-coarsen back to the original mesh.
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <array>
+#include <cmath>
 #include <random>
 
 #include "fixtures.hpp"
@@ -163,6 +166,43 @@ TEST(Refinement, CoarseningRespectsTheBalance) {
   const int child = 27;  // first child of the centre cell
   rm.refine({child});    // level 2 inside the centre cell: neighbours must stay refined
   EXPECT_EQ(rm.coarsen({13}), 0);  // its children are not all leaves
+}
+
+// MeshAdaptation's DOF budget refines a prefix of the marked cells in one call (a bisection
+// on its length when all do not fit): that must give the forest that refining the cells one
+// at a time does (the 2:1-balanced closure of the splits is unique).
+TEST(Refinement, RefiningAListEqualsRefiningItsCellsOneAtATime) {
+  auto cells = [](const RefinableHexMesh& rm) {
+    const auto act = rm.active();
+    std::vector<std::array<double, 4>> out;  // centre and level of each active cell
+    for (int e = 0; e < act.mesh.numElements(); ++e) {
+      const Vec3 c = act.mesh.elementCorners(e).colwise().mean();
+      out.push_back({std::round(c[0] * 1e9), std::round(c[1] * 1e9), std::round(c[2] * 1e9), double(act.level[e])});
+    }
+    std::sort(out.begin(), out.end());
+    return out;
+  };
+  for (unsigned seed = 1; seed <= 6; ++seed) {
+    const RefinableHexMesh start = randomlyRefined(seed, 2, false);
+    // The finest active cells, a few of them at random: their splits cascade through the balance.
+    int finest = 0;
+    const auto act = start.active();
+    for (int e = 0; e < act.mesh.numElements(); ++e) finest = std::max(finest, act.level[e]);
+    std::vector<int> pick;
+    std::mt19937 g(seed);
+    for (int e = 0; e < act.mesh.numElements(); ++e)
+      if (act.level[e] == finest && g() % 3 == 0) pick.push_back(act.cell[e]);
+    ASSERT_GE(pick.size(), 2u);
+    RefinableHexMesh batch = start, one = start;
+    const int n_batch = batch.refine(pick);
+    int n_one = 0;
+    for (int c : pick)
+      if (one.isActive(c)) n_one += one.refine({c});
+    EXPECT_EQ(n_batch, n_one) << "seed " << seed;
+    EXPECT_GT(n_batch, static_cast<int>(pick.size())) << "seed " << seed << ": the balance refined nothing more";
+    EXPECT_EQ(cells(batch), cells(one)) << "seed " << seed;
+    EXPECT_EQ(batch.numActiveNodes(), one.numActiveNodes());
+  }
 }
 
 #include "needle_sim/adapt/marking.hpp"

@@ -94,21 +94,30 @@ AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est, bool refine) {
   for (int e : marked) cells.push_back(active_.cell[e]);
   if (settings_.max_dofs <= 0) {
     res.refined = forest_.refine(cells);
+  } else if (3 * forest_.numActiveNodes() >= settings_.max_dofs) {
+    res.budget_reached = !cells.empty();
   } else {
-    for (int c : cells) {
-      if (!forest_.isActive(c)) continue;  // split already by the balance of an earlier one
-      if (3 * forest_.numActiveNodes() >= settings_.max_dofs) {
-        res.budget_reached = true;
-        break;
+    // The longest prefix of the cells (largest errors first) whose refinement stays within
+    // the DOF budget. Refining a list of cells gives the same forest as refining them one
+    // at a time (the 2:1-balanced closure of the splits is unique), and a longer prefix never
+    // has fewer nodes: all of them when they fit (one copy of the forest, the usual case),
+    // else a bisection on the prefix's length. Before (2026-12-03) a copy of the forest per
+    // cell: 1.1-1.9 ms of the phantom's decision steps, about half of them.
+    const RefinableHexMesh backup = forest_;
+    const int all = forest_.refine(cells);
+    if (3 * forest_.numActiveNodes() <= settings_.max_dofs) {
+      res.refined = all;
+    } else {
+      size_t lo = 0, hi = cells.size();  // prefix lo fits, prefix hi does not
+      while (hi - lo > 1) {
+        const size_t mid = (lo + hi) / 2;
+        RefinableHexMesh trial = backup;
+        trial.refine(std::vector<int>(cells.begin(), cells.begin() + static_cast<long>(mid)));
+        (3 * trial.numActiveNodes() <= settings_.max_dofs ? lo : hi) = mid;
       }
-      RefinableHexMesh backup = forest_;
-      const int n = forest_.refine({c});
-      if (3 * forest_.numActiveNodes() > settings_.max_dofs) {
-        forest_ = std::move(backup);
-        res.budget_reached = true;
-        break;
-      }
-      res.refined += n;
+      forest_ = backup;
+      res.refined = forest_.refine(std::vector<int>(cells.begin(), cells.begin() + static_cast<long>(lo)));
+      res.budget_reached = true;
     }
   }
   res.changed = res.refined > 0 || res.coarsened > 0;
