@@ -1,5 +1,7 @@
 #include "output_queue.hpp"
 
+#include "needle_sim/core/background_priority.hpp"
+
 #include <chrono>
 
 namespace needle_sim {
@@ -30,6 +32,7 @@ void OutputQueue::post(std::function<void()> job) {
 }
 
 void OutputQueue::loop() {
+  nameThisThread("ns_output");
   int empty = 0;
   for (;;) {
     std::deque<std::function<void()>> jobs;

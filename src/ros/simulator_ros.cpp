@@ -20,6 +20,7 @@
 #include "display_outputs.hpp"
 #include "insert_action.hpp"
 #include "limits_reconfigure.hpp"
+#include "needle_sim/core/background_priority.hpp"
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
@@ -205,6 +206,7 @@ void SimulatorRos::restartAfterClockJump(const char* what) {
 }
 
 void SimulatorRos::setStepperPriority() {
+  nameThisThread("ns_step");
   const int prio = params_->realtime_priority;
   if (prio <= 0) return;
   sched_param sp{};
@@ -315,6 +317,7 @@ void SimulatorRos::applyCommands() {
 }
 
 void SimulatorRos::errorLoop() {
+  nameThisThread("ns_target_err");
   for (;;) {
     std::unique_ptr<Simulation> job;
     {

@@ -226,8 +226,10 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
   std::printf("| %s | %.2f | %.0f | %.0f | %.3f | %.3f | %.3f | %.1f | %ld | %ld | %d | %d | %.3f | %.3f | %.3f | %.1f %% |\n",
               scene.name.c_str(), wall, pd.median, pd.max, pt.median, pt.p99, pt.p999, pt.max, misses, longest, passes,
               changes, pe.median, pm.median, pr.median, 100 * sum_adapt / std::max(sum_total, 1e-300));
-  std::printf("p99.9 / median %.1f, max / median %.1f; deferred mesh changes %ld, switches that waited %ld\n",
-              pt.p999 / pt.median, pt.max / pt.median, sim.deferredRebuilds(), sim.rebuildWaits());
+  std::printf("p99.9 / median %.1f, max / median %.1f; deferred mesh changes %ld, switches that waited %ld; "
+              "background passes %ld, decisions waited for %ld\n",
+              pt.p999 / pt.median, pt.max / pt.median, sim.deferredRebuilds(), sim.rebuildWaits(),
+              sim.backgroundPasses(), sim.passWaits());
   if (o.slowest > 0) {
     // Where the worst steps' time went (the phases of StepStats; factor includes the needles').
     std::sort(slow.begin(), slow.end(), [](const Slow& a, const Slow& b) { return a.ms > b.ms; });
@@ -262,6 +264,8 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
                         {"paced", o.pace},
                         {"deferred_mesh_changes", sim.deferredRebuilds()},
                         {"rebuild_waits", sim.rebuildWaits()},
+                        {"background_passes", sim.backgroundPasses()},
+                        {"pass_waits", sim.passWaits()},
                         {"target_error_ms", {{"passes", goal.size()}, {"median", pg.median}, {"max", pg.max},
                                              {"share", sum_goal / std::max(sum_total + sum_goal, 1e-300)},
                                              {"copy_median", pc.median}, {"copy_max", pc.max},

@@ -280,7 +280,9 @@ TEST(Adaptivity, InsertionReembedsConstraintPointsExactly) {
 // the results do not depend on when the build finishes (a late build only makes the switch
 // wait); a copy taken while a build is pending steps exactly as the original.
 TEST(Adaptivity, DeferredMeshChangesSwitchAtTheirStepAndCarryTheState) {
-  const std::vector<std::string> sets = {"time.duration=0.8", "adaptivity.rebuild_delay=0.007"};
+  // (The pass itself on this thread: BackgroundPassesDecideAsPassesOnTheSteppingThread.)
+  const std::vector<std::string> sets = {"time.duration=0.8", "adaptivity.rebuild_delay=0.007",
+                                         "adaptivity.estimate_delay=0"};
   struct Trace {
     std::vector<VecX> x;
     long deferred = 0, waits = 0;
@@ -327,6 +329,65 @@ TEST(Adaptivity, DeferredMeshChangesSwitchAtTheirStepAndCarryTheState) {
   for (size_t k = 0; k < late.x.size(); ++k)
     ASSERT_EQ((late.x[k] - on_time.x[k]).lpNorm<Eigen::Infinity>(), 0.0) << "step " << k + 1;
 
+}
+
+// Background passes (adaptivity.estimate_delay): the estimate, the marking and the new forest
+// are made on another thread from a copy of the pass's state, the decision taken up
+// estimate_delay later (or at the next pass due, waiting for it), a change switched to at the
+// step a pass on the stepping thread would have switched at. The run is that of passes on the
+// stepping thread, bit for bit, however late the background thread is; a copy taken while a
+// pass is under way steps as the original.
+TEST(Adaptivity, BackgroundPassesDecideAsPassesOnTheSteppingThread) {
+  struct Trace {
+    std::vector<VecX> x;
+    long passes = 0, waits = 0, changes = 0;
+  };
+  auto run = [&](const std::string& estimate_delay, double late_ms, bool checks) {
+    Simulation::setRebuildDelayForTesting(late_ms);
+    Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml",
+                             {"time.duration=0.8", "adaptivity.rebuild_delay=0.007",
+                              "adaptivity.estimate_delay=" + estimate_delay}));
+    Trace tr;
+    std::unique_ptr<Simulation> copy;
+    long started = -1;
+    for (long k = 0; k < sim.scene().numSteps(); ++k) {
+      const long passes = sim.backgroundPasses();
+      sim.step();
+      if (copy) copy->step();
+      if (sim.backgroundPasses() > passes) started = sim.stepIndex();
+      if (checks && sim.passPending()) {
+        EXPECT_LT(sim.stepIndex(), started + 5) << "a decision is taken up 5 steps (5 ms) after its pass at the latest";
+        if (!copy && sim.stepIndex() > 300) copy = std::make_unique<Simulation>(sim);
+      }
+      tr.x.push_back(sim.tissue().positions());
+    }
+    if (checks) {
+      EXPECT_TRUE(copy != nullptr);
+      if (copy) {
+        EXPECT_EQ(copy->tissue().mesh().numDofs(), sim.tissue().mesh().numDofs());
+        EXPECT_EQ((copy->tissue().positions() - sim.tissue().positions()).lpNorm<Eigen::Infinity>(), 0.0);
+      }
+    }
+    tr.passes = sim.backgroundPasses();
+    tr.waits = sim.passWaits();
+    tr.changes = sim.deferredRebuilds();
+    Simulation::setRebuildDelayForTesting(0);
+    return tr;
+  };
+  const Trace here = run("0", 0, false), background = run("0.005", 0, true), late = run("0.005", 15, false);
+  EXPECT_EQ(here.passes, 0);
+  EXPECT_GT(background.passes, 20);
+  ASSERT_GT(here.changes, 1);
+  EXPECT_EQ(background.changes, here.changes);
+  EXPECT_EQ(late.changes, here.changes);
+  EXPECT_GT(late.waits, 0) << "15 ms late passes must have been waited for";
+  ASSERT_EQ(background.x.size(), here.x.size());
+  ASSERT_EQ(late.x.size(), here.x.size());
+  for (size_t k = 0; k < here.x.size(); ++k) {
+    ASSERT_EQ(background.x[k].size(), here.x[k].size()) << "step " << k + 1;
+    ASSERT_EQ((background.x[k] - here.x[k]).lpNorm<Eigen::Infinity>(), 0.0) << "step " << k + 1;
+    ASSERT_EQ((late.x[k] - here.x[k]).lpNorm<Eigen::Infinity>(), 0.0) << "step " << k + 1;
+  }
 }
 
 // The adaptive phantom insertion (theta 0.3, 2 levels over 8x4x4) against the uniform

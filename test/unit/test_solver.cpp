@@ -199,3 +199,57 @@ TEST(SystemSolver, SynchronousRefreshStopsCgAtTheCostOfAFactorisation) {
   EXPECT_LE(st2.iterations, 2);
   EXPECT_LT((x2 - A.ldlt().solve(b2)).norm(), 1e-8 * x2.norm());
 }
+
+// A background refresh asked for compliance columns (the constraint solve's cached columns of
+// A^-1) computes them with its new factor: after the swap they are the new factor's columns,
+// tagged with its version, handed over once.
+TEST(SystemSolver, BackgroundRefreshComputesTheAskedColumnsWithItsFactor) {
+  const double cm = 1.0, ck = 1e-6;  // a dynamic step's matrix
+  LinearSolverSettings set;
+  set.tolerance = 1e-10;
+  set.refresh_iterations = 0;  // any iteration marks the factor stale
+  set.async = true;
+  SolverSetup s;
+  SystemSolver solver(s.model, s.dofs, set);
+  const VecX b = VecX::LinSpaced(s.dofs.numFree(), -1, 1);
+  VecX x;
+  EXPECT_TRUE(solver.solve(s.mass_free, cm, ck, b, x).refactored);
+  VecX xr = s.mesh.restPositions();
+  for (int i = 0; i < s.mesh.numNodes(); ++i) {
+    const Vec3 p = s.mesh.node(i);
+    const double th = 10.0 * (0.04 - p[0]);
+    xr.segment<3>(3 * i) = Vec3(p[0], p[1] * std::cos(th) - p[2] * std::sin(th), p[1] * std::sin(th) + p[2] * std::cos(th));
+  }
+  s.model.updateRotations(xr);
+  const std::vector<int> asked = {0, 5, 17};
+  int lambda_calls = 0;
+  auto dofs = [&] {
+    ++lambda_calls;
+    return asked;
+  };
+  bool started = false, swapped = false;
+  for (int k = 0; k < 20 && !swapped; ++k) {
+    x.setZero(b.size());
+    const auto st = solver.solve(s.mass_free, cm, ck, b, x, 0, dofs);
+    started = started || st.async_started;
+    swapped = st.async_swapped;
+  }
+  ASSERT_TRUE(started);
+  ASSERT_TRUE(swapped);
+  EXPECT_EQ(lambda_calls, 1) << "the DOFs are asked for only when a refresh starts";
+  std::vector<int> got;
+  Eigen::MatrixXd X;
+  long version = -1;
+  ASSERT_TRUE(solver.takeRefreshColumns(got, X, version));
+  EXPECT_EQ(got, asked);
+  EXPECT_EQ(version, solver.factorVersion());
+  const Eigen::MatrixXd Ainv = s.dense(cm, ck).inverse();  // the rotated matrix's inverse
+  for (size_t j = 0; j < asked.size(); ++j) {
+    VecX e = VecX::Zero(s.dofs.numFree()), col;
+    e[asked[j]] = 1.0;
+    solver.factor().solve(e, col);
+    EXPECT_LT((X.col(static_cast<Eigen::Index>(j)) - col).norm(), 1e-12 * col.norm());
+    EXPECT_LT((X.col(static_cast<Eigen::Index>(j)) - Ainv.col(asked[j])).norm(), 1e-8 * col.norm());
+  }
+  EXPECT_FALSE(solver.takeRefreshColumns(got, X, version)) << "handed over once";
+}

@@ -24,6 +24,12 @@ struct AdaptivitySettings {
   // boundary (0: at once, on the stepping thread). Doc: method.md, "Refinement and
   // coarsening", deferred mesh changes.
   double rebuild_delay = 0;
+  // Dynamic steps with the spr estimator: the pass itself (estimate, marking, the new forest)
+  // runs on a background thread from a copy of the pass's state, and its decision is taken up
+  // this long after the pass [s, whole steps, at least one; at most rebuild_delay] or sooner,
+  // waiting for it, when another pass falls due (0: on the stepping thread). The results are
+  // those of a pass on the stepping thread. Doc: method.md, "Refinement and coarsening".
+  double estimate_delay = 0;
   bool coarsen = false;
   double theta_coarsen = 0.05;  // merge 8 children when sqrt(sum eta_c^2) < theta_coarsen max eta ...
   int coarsen_after = 3;        // ... at this many consecutive estimates (hysteresis)

@@ -43,7 +43,11 @@ class SprEstimator {
   // Estimate of the stress change from positions `reference` to x (SPR is linear in the
   // stress field): after a preload such as the brain shift, the error of the response to
   // what came after it, which the preload's own large stresses would otherwise mask.
-  ErrorEstimate estimate(const VecX& x, const VecX* reference) const;
+  ErrorEstimate estimate(const VecX& x, const VecX* reference) const { return estimate(x, reference, nullptr); }
+  // The same, the rotations extracted from the given starting rotations (a copy of the
+  // model's rotationGuesses() at the step x is of) instead of the model's current ones: an
+  // estimate made on another thread while the model steps on (Simulation, estimate_delay).
+  ErrorEstimate estimate(const VecX& x, const VecX* reference, const std::vector<Eigen::Quaterniond>* guesses) const;
 
   // Stress of element e at natural coordinates xi, global frame, for positions x (the
   // element's rotation is extracted from x).
@@ -84,7 +88,7 @@ class SprEstimator {
   const ShapeTables& shape(int e) const { return shapes_[model_.referenceIndex(e)]; }
   // Element rotations of positions x, kept for the last two position vectors asked (the
   // primal's and the reference's: the duals of a pass ask for the same ones again).
-  const std::vector<Mat3>& rotations(const VecX& x) const;
+  const std::vector<Mat3>& rotations(const VecX& x, const std::vector<Eigen::Quaterniond>* guesses = nullptr) const;
 
   const CorotationalHexModel& model_;
   std::vector<std::vector<int>> node_elements_;

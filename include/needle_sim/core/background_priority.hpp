@@ -5,11 +5,16 @@
 // an equal share cost steps a whole scheduler slice (about 4 ms). The background thread runs
 // at nice +10 (Linux: a thread's own nice value), so the stepping thread preempts it; it still
 // gets a core whenever one is free.
+#include <pthread.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 
 namespace needle_sim {
+
+// Names the calling thread (at most 15 characters; shown by top -H, perf, gdb), so a
+// deployment can see which of the simulator's threads uses what.
+inline void nameThisThread(const char* name) { (void)pthread_setname_np(pthread_self(), name); }
 
 inline void lowerThisThreadPriority() {
   (void)setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), 10);

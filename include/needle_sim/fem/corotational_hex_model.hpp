@@ -47,6 +47,11 @@ class CorotationalHexModel {
   // Rotation of element e for positions x, without changing the model (warm-started from
   // the stored one): for outputs computed after a step (stresses, error estimates).
   Mat3 computeRotation(int e, const VecX& x) const;
+  // The same from a given starting rotation (the extraction iterates from it): with a copy of
+  // rotationGuesses() taken at a step, another thread computes what computeRotation would
+  // have then, while this model steps on.
+  Mat3 computeRotation(int e, const VecX& x, const Eigen::Quaterniond& guess) const;
+  const std::vector<Eigen::Quaterniond>& rotationGuesses() const { return quat_; }
   // Sets all rotations to the identity (the linear, small-displacement model).
   void resetRotations();
   // Elements whose deformation gradient at the centroid has det F <= 0 at the last update.

@@ -91,7 +91,13 @@ class Simulation {
   // Deferred mesh changes so far, and those whose switch had to wait for the build.
   long deferredRebuilds() const { return deferred_rebuilds_; }
   long rebuildWaits() const { return rebuild_waits_; }
-  // Tests: every background mesh-change build takes at least this long (a late build).
+  // An adaptation pass under way on a background thread (adaptivity.estimate_delay); passes
+  // made so, and those whose decision had to be waited for when it was taken up.
+  bool passPending() const { return pending_pass_ != nullptr; }
+  long backgroundPasses() const { return background_passes_; }
+  long passWaits() const { return pass_waits_; }
+  // Tests: every background mesh-change build, and every background pass's decision, takes at
+  // least this long (late background work).
   static void setRebuildDelayForTesting(double ms);
   // SPR estimate of the current state; computed on first use after each step (adaptive
   // runs compute it anyway and share it).
@@ -170,6 +176,25 @@ class Simulation {
   // before any other adaptation pass).
   void startRebuild();
   void finishRebuild();
+  // An adaptation pass on a background thread (adaptivity.estimate_delay): startPass copies
+  // this step's state and starts it; takePass takes its decision up (waiting for it if need
+  // be) at its step, or sooner when another pass falls due: a change becomes a deferred
+  // rebuild (the background thread goes on to build its body) switched to at the same step
+  // as a change decided on this thread. estimateLagSteps: estimate_delay in steps (0: none).
+  void startPass();
+  void takePass();
+  long estimateLagSteps() const;
+  // Waits for a background pass (its decision; with build, its body too): the estimator and
+  // the adaptive forest are the pass's until then.
+  void waitForPass(bool build) const;
+  using HangingNodes = std::vector<std::vector<std::pair<int, double>>>;
+  struct PreparedTissue;
+  // A changed mesh's body, from any thread (values it owns; the scene and the frozen brain
+  // shift read only): factor, compliance columns of the elements holding `points`, loads,
+  // organ embedding, SPR fits.
+  static std::shared_ptr<PreparedTissue> prepareTissue(const Scene& scene, double h, const BrainShift* shift,
+                                                       double load_scale, HexMesh mesh, HangingNodes hanging,
+                                                       const VecX& x, const VecX& v, const std::vector<Vec3>& points);
   // The levels and hanging nodes of the adaptive mesh now in use.
   void noteActiveMesh();
   // rebuild_delay in steps of the current dt (0: synchronous).
@@ -229,9 +254,25 @@ class Simulation {
     int hanging = 0;
   };
   std::unique_ptr<PendingRebuild> pending_rebuild_;
+  struct PassDecision {
+    AdaptationResult result;
+    ErrorEstimate estimate;        // of the pass's step
+    std::vector<int> levels;       // of the new mesh, when it changed
+    int hanging = 0;
+    double estimate_ms = 0, mark_refine_ms = 0;  // on the background thread
+  };
+  struct PendingPass {
+    long step = 0;         // whose state it estimates
+    long take_step = 0;    // its decision is taken up here at the latest
+    long switch_step = 0;  // a change is switched to here (as if decided at `step`)
+    std::shared_future<std::shared_ptr<const PassDecision>> decision;
+    std::shared_future<std::shared_ptr<PreparedTissue>> build;  // null after no change
+  };
+  std::unique_ptr<PendingPass> pending_pass_;
   std::vector<int> levels_;  // of the mesh in use
   int hanging_nodes_ = 0;
   long deferred_rebuilds_ = 0, rebuild_waits_ = 0;
+  long background_passes_ = 0, pass_waits_ = 0;
   mutable std::unique_ptr<SprEstimator> estimator_;  // bound to the current tissue body
   mutable ErrorEstimate estimate_;
   mutable long estimate_step_ = -1;

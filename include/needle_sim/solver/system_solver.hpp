@@ -32,6 +32,9 @@
 
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/fem/corotational_hex_model.hpp"
+#include <functional>
+#include <vector>
+
 #include "needle_sim/solver/cholmod_solver.hpp"
 #include "needle_sim/solver/dof_map.hpp"
 #include "needle_sim/solver/symmetric_assembler.hpp"
@@ -86,7 +89,16 @@ class SystemSolver {
   // mass_free is the lumped mass over the free DOFs. Throws NumericalError(-1, ...) when
   // the matrix is not positive definite or the solve fails. tolerance > 0 replaces the
   // settings' CG tolerance for this call (an inexact Newton step); ignored by the direct method.
-  LinearSolveStats solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x, double tolerance = 0);
+  // column_dofs, when given, names the free DOFs whose columns of A^-1 a background refresh
+  // started by this call also computes with its new factor (the constraint solve's cached
+  // compliance columns: refreshed with the factor instead of on the stepping thread; called
+  // only when a refresh starts); takeRefreshColumns hands them over after the swap.
+  LinearSolveStats solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x, double tolerance = 0,
+                         const std::function<std::vector<int>()>& column_dofs = {});
+  // After a call that swapped in a background refresh (async_swapped): the columns it
+  // computed (dofs, one column of X each) and the factor version they belong to; false when
+  // there are none (none asked for, or already taken).
+  bool takeRefreshColumns(std::vector<int>& dofs, Eigen::MatrixXd& X, long& version);
   // Several right-hand sides of (c_m M + c_k K) X = B with CG preconditioned by the factor as
   // it is, whatever matrix it was made for (the dual problems of a goal-oriented estimate:
   // the stiffness with the dynamic step's factor), never refactorising (a factor is made
@@ -143,11 +155,14 @@ class SystemSolver {
     double c_m = 0, c_k = 0;
     ElementBlocks extra;
     long requested_call = 0;
-    double work_ms = 0;                      // assembly + factorisation on the thread
+    std::vector<int> column_dofs;            // A^-1 columns asked for, computed after the factor
+    Eigen::MatrixXd columns;
+    double work_ms = 0;                      // assembly + factorisation (+ columns) on the thread
     std::shared_future<bool> done;           // true: positive definite
   };
   void refactor(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st);
-  void startRefresh(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st);
+  void startRefresh(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st,
+                    const std::function<std::vector<int>()>& column_dofs);
   // Waits for the pending refresh and makes it the factor in use (false: it failed, and a
   // synchronous refactorisation is due).
   bool finishRefresh(LinearSolveStats& st);
@@ -169,6 +184,7 @@ class SystemSolver {
   long calls_ = 0, calls_since_factor_ = 0;
   std::unique_ptr<Refresh> pending_;
   std::unique_ptr<Refresh> spare_;  // a finished refresh's buffers, reused by the next
+  long columns_version_ = -1;       // spare_'s columns belong to this factor version (-1: none to take)
   mutable VecX full_in_, full_out_;
   const ElementBlocks* extra_ = nullptr;
 };

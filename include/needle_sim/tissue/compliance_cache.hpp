@@ -26,6 +26,11 @@ class ComplianceCache {
   long version(int free_dof) const { return columns_.at(free_dof).version; }
   size_t size() const { return columns_.size(); }
   void clear() { columns_.clear(); }
+  // The free DOFs with a column, sorted.
+  std::vector<int> dofs() const;
+  // Columns computed elsewhere with the factor of `version` (a background refresh's, taken
+  // when it is swapped in): they replace the cached ones of those DOFs.
+  void adopt(const std::vector<int>& dofs, const Eigen::MatrixXd& X, long version);
 
  private:
   struct Column {

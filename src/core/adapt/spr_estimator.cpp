@@ -130,7 +130,7 @@ SprEstimator::SprEstimator(const CorotationalHexModel& model) : model_(model) {
   }
 }
 
-const std::vector<Mat3>& SprEstimator::rotations(const VecX& x) const {
+const std::vector<Mat3>& SprEstimator::rotations(const VecX& x, const std::vector<Eigen::Quaterniond>* guesses) const {
   for (auto& c : rotation_cache_)
     if (c.x.size() == x.size() && c.x.size() > 0 && c.x == x) return c.R;
   RotationCache& c = rotation_cache_[rotation_next_];
@@ -138,7 +138,10 @@ const std::vector<Mat3>& SprEstimator::rotations(const VecX& x) const {
   c.x = x;
   const int ne = model_.mesh().numElements();
   c.R.resize(ne);
-  for (int e = 0; e < ne; ++e) c.R[e] = model_.computeRotation(e, x);
+  if (guesses)
+    for (int e = 0; e < ne; ++e) c.R[e] = model_.computeRotation(e, x, (*guesses)[e]);
+  else
+    for (int e = 0; e < ne; ++e) c.R[e] = model_.computeRotation(e, x);
   return c.R;
 }
 
@@ -269,14 +272,15 @@ SprEstimator::DualIndicators SprEstimator::dual(const VecX& x, const VecX* refer
   return out;
 }
 
-ErrorEstimate SprEstimator::estimate(const VecX& x, const VecX* reference) const {
+ErrorEstimate SprEstimator::estimate(const VecX& x, const VecX* reference,
+                                     const std::vector<Eigen::Quaterniond>* guesses) const {
   const HexMesh& mesh = model_.mesh();
   const int ne = mesh.numElements();
   ErrorEstimate est;
   est.centroid_stress.resize(ne);
-  const std::vector<Mat3>& R = rotations(x);
+  const std::vector<Mat3>& R = rotations(x, guesses);
   static const std::vector<Mat3> none;
-  const std::vector<Mat3>& R0 = reference ? rotations(*reference) : none;
+  const std::vector<Mat3>& R0 = reference ? rotations(*reference, guesses) : none;
   const auto& D0 = model_.material().elasticity();
   for (int e = 0; e < ne; ++e) {
     const auto& Bc = shape(e).centroid_B;

@@ -385,7 +385,7 @@ void readAdaptivity(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "adaptivity";
   if (!n.IsMap()) r.fail(p, "must be a map {estimator, marking, theta, max_level, ...}");
   r.checkKeys(n, p, {"estimator", "goal", "marking", "theta", "max_level", "max_dofs", "tolerance", "every_steps",
-                     "coarsen", "rebuild_delay"});
+                     "coarsen", "rebuild_delay", "estimate_delay"});
   AdaptivitySettings a;
   if (auto v = r.child(n, p, "estimator", false)) {
     const std::string e = r.string(v, p + ".estimator");
@@ -428,6 +428,16 @@ void readAdaptivity(const SceneReader& r, const YAML::Node& n, Scene& s) {
     a.rebuild_delay = r.number(v, p + ".rebuild_delay");
     if (!(a.rebuild_delay >= 0 && a.rebuild_delay <= 10))
       r.fail(p + ".rebuild_delay", "must be in [0, 10] s, got " + SceneReader::fmt(a.rebuild_delay));
+  }
+  if (auto v = r.child(n, p, "estimate_delay", false)) {
+    a.estimate_delay = r.number(v, p + ".estimate_delay");
+    if (!(a.estimate_delay >= 0 && a.estimate_delay <= a.rebuild_delay))
+      r.fail(p + ".estimate_delay", "must be in [0, rebuild_delay = " + SceneReader::fmt(a.rebuild_delay) +
+                                        "] s (a change is switched to after its decision), got " +
+                                        SceneReader::fmt(a.estimate_delay));
+    if (a.estimate_delay > 0 && a.estimator == AdaptivitySettings::Estimator::Goal)
+      r.fail(p + ".estimate_delay", "must be 0 with estimator: goal (its dual solves use the tissue's factor, "
+                                    "on the stepping thread)");
   }
   if (auto v = r.child(n, p, "tolerance", false)) {
     a.tolerance = r.number(v, p + ".tolerance");

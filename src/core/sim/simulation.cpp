@@ -121,7 +121,7 @@ void Simulation::replanNeedles() {
 }
 
 Simulation::Simulation(const Simulation& o)
-    : scene_(o.scene_),
+    : scene_((o.waitForPass(true), o.scene_)),  // a background pass has finished with what is copied
       dt_(o.dt_),
       probes_(o.probes_),
       targets_(o.targets_),
@@ -135,6 +135,8 @@ Simulation::Simulation(const Simulation& o)
       hanging_nodes_(o.hanging_nodes_),
       deferred_rebuilds_(o.deferred_rebuilds_),
       rebuild_waits_(o.rebuild_waits_),
+      background_passes_(o.background_passes_),
+      pass_waits_(o.pass_waits_),
       estimate_(o.estimate_),
       estimate_step_(-1),
       estimate_ever_(o.estimate_ever_),
@@ -177,6 +179,21 @@ Simulation::Simulation(const Simulation& o)
     pending_rebuild_ = std::make_unique<PendingRebuild>(*o.pending_rebuild_);
     pending_rebuild_->job = ready.get_future().share();
   }
+  if (o.pending_pass_) {
+    // The same decision (finished: waited for above), taken up at the same step; a body it
+    // built is copied as a pending rebuild's is.
+    pending_pass_ = std::make_unique<PendingPass>(*o.pending_pass_);
+    const std::shared_ptr<PreparedTissue> p = o.pending_pass_->build.get();
+    std::shared_ptr<PreparedTissue> q;
+    if (p) {
+      q = std::make_shared<PreparedTissue>();
+      q->tissue = std::make_unique<TissueBody>(*p->tissue);
+      if (p->organ) q->organ = std::make_unique<EmbeddedSurface>(p->organ->restPtr(), q->tissue->mesh());
+    }
+    std::promise<std::shared_ptr<PreparedTissue>> ready;
+    ready.set_value(q);
+    pending_pass_->build = ready.get_future().share();
+  }
   if (o.interaction_) {
     std::vector<NeedleBody*> nd;
     for (auto& n : needles_) nd.push_back(n.get());
@@ -189,6 +206,7 @@ Simulation::Simulation(const Simulation& o)
 Simulation::~Simulation() {
   // The background build reads the scene: it finishes before the simulation goes.
   if (pending_rebuild_ && pending_rebuild_->job.valid()) pending_rebuild_->job.wait();
+  waitForPass(true);
 }
 
 void Simulation::setTimeStep(double dt) {
@@ -400,6 +418,7 @@ void Simulation::noteActiveMesh() {
 
 const ErrorEstimate& Simulation::errorEstimate() const {
   if (estimate_step_ != step_) {
+    waitForPass(false);  // the estimator is a background pass's until its decision is made
     estimate_ever_ = true;
     if (!estimator_) estimator_ = std::make_unique<SprEstimator>(tissue_->model());
     estimate_ = estimator_->estimate(tissue_->positions(), reference_.size() ? &reference_ : nullptr);
@@ -429,6 +448,7 @@ const TargetError& Simulation::targetError(int i) const {
     target_error_steps_.resize(targets_.size(), -1);
   }
   if (target_error_steps_[i] == step_ && target_errors_step_ != -1) return target_errors_[i];
+  waitForPass(false);
   const HexMesh& mesh = tissue_->mesh();
   if (qois_.size() != targets_.size()) {
     const PointLocator locator(mesh);
@@ -545,35 +565,142 @@ void Simulation::startRebuild() {
   const BrainShift* shift = shift_.get();  // frozen after the pre-step: read only
   const double load_scale = shift_result_.load_scale;
   tissue_->holdFactorRefresh(true);  // the build gets the second core (the DBS switch waited for it)
-  pending->job =
-      std::async(std::launch::async,
-                 [scene, h, shift, load_scale, mesh = std::move(mesh), hanging = std::move(hanging), x = std::move(x),
-                  v = std::move(v), points = std::move(points)]() mutable {
-                   lowerThisThreadPriority();
-                   auto p = std::make_shared<PreparedTissue>();
-                   p->tissue = std::make_unique<TissueBody>(std::move(mesh), scene->tissue, scene->solver, scene->file, hanging);
-                   p->tissue->setState(x, v);
-                   const HexMesh& m = p->tissue->mesh();
-                   if (scene->tissue.geometry.kind == TissueGeometry::Kind::Surface)
-                     p->organ = std::make_unique<EmbeddedSurface>(scene->tissue.geometry.surface, m);
-                   persistentLoads(shift, load_scale, *p->tissue, p->organ.get());
-                   PointLocator locator(m);
-                   std::vector<int> elements;
-                   for (const Vec3& r : points) {
-                     EmbeddedPoint ep;
-                     if (locator.locate(r, ep) || locator.locateNearest(r, ep)) elements.push_back(ep.element);
-                   }
-                   std::sort(elements.begin(), elements.end());
-                   elements.erase(std::unique(elements.begin(), elements.end()), elements.end());
-                   p->tissue->prepareForSteps(h, elements);
-                   p->estimator = std::make_unique<SprEstimator>(p->tissue->model());
-                   const double delay = g_rebuild_delay_ms;
-                   if (delay > 0) std::this_thread::sleep_for(std::chrono::duration<double, std::milli>(delay));
-                   return p;
-                 })
-          .share();
+  pending->job = std::async(std::launch::async,
+                            [scene, h, shift, load_scale, mesh = std::move(mesh), hanging = std::move(hanging),
+                             x = std::move(x), v = std::move(v), points = std::move(points)]() mutable {
+                              lowerThisThreadPriority();
+                              nameThisThread("ns_rebuild");
+                              return prepareTissue(*scene, h, shift, load_scale, std::move(mesh), std::move(hanging),
+                                                   x, v, points);
+                            })
+                     .share();
   pending_rebuild_ = std::move(pending);
   ++deferred_rebuilds_;
+}
+
+std::shared_ptr<Simulation::PreparedTissue> Simulation::prepareTissue(const Scene& scene, double h,
+                                                                      const BrainShift* shift, double load_scale,
+                                                                      HexMesh mesh, HangingNodes hanging, const VecX& x,
+                                                                      const VecX& v, const std::vector<Vec3>& points) {
+  auto p = std::make_shared<PreparedTissue>();
+  p->tissue = std::make_unique<TissueBody>(std::move(mesh), scene.tissue, scene.solver, scene.file, hanging);
+  p->tissue->setState(x, v);
+  const HexMesh& m = p->tissue->mesh();
+  if (scene.tissue.geometry.kind == TissueGeometry::Kind::Surface)
+    p->organ = std::make_unique<EmbeddedSurface>(scene.tissue.geometry.surface, m);
+  persistentLoads(shift, load_scale, *p->tissue, p->organ.get());
+  PointLocator locator(m);
+  std::vector<int> elements;
+  for (const Vec3& r : points) {
+    EmbeddedPoint ep;
+    if (locator.locate(r, ep) || locator.locateNearest(r, ep)) elements.push_back(ep.element);
+  }
+  std::sort(elements.begin(), elements.end());
+  elements.erase(std::unique(elements.begin(), elements.end()), elements.end());
+  p->tissue->prepareForSteps(h, elements);
+  p->estimator = std::make_unique<SprEstimator>(p->tissue->model());
+  const double delay = g_rebuild_delay_ms;
+  if (delay > 0) std::this_thread::sleep_for(std::chrono::duration<double, std::milli>(delay));
+  return p;
+}
+
+void Simulation::startPass() {
+  // On this thread: copies of what the pass reads (positions, velocities, the rotation
+  // guesses the estimate's polar decompositions start from, the constraint points). The
+  // estimator and the forest are the background thread's until the decision is taken up
+  // (waitForPass); the tissue body steps on meanwhile.
+  if (!estimator_) estimator_ = std::make_unique<SprEstimator>(tissue_->model());
+  auto pp = std::make_unique<PendingPass>();
+  pp->step = step_;
+  pp->take_step = step_ + estimateLagSteps();
+  pp->switch_step = step_ + std::max(rebuildLagSteps(), estimateLagSteps());
+  std::vector<Vec3> points;
+  if (interaction_)
+    for (const auto& c : interaction_->constraints()) points.push_back(c->tissue.rest);
+  std::promise<std::shared_ptr<const PassDecision>> decided;
+  pp->decision = decided.get_future().share();
+  const SprEstimator* estimator = estimator_.get();
+  MeshAdaptation* adaptation = adaptation_.get();
+  const VecX* reference = reference_.size() ? &reference_ : nullptr;  // changes only at a switch
+  const double h = dt_;
+  const BrainShift* shift = shift_.get();
+  const double load_scale = shift_result_.load_scale;
+  pp->build =
+      std::async(std::launch::async,
+                 [this, estimator, adaptation, reference, h, shift, load_scale, decided = std::move(decided),
+                  x = VecX(tissue_->positions()), v = VecX(tissue_->velocities()),
+                  guesses = tissue_->model().rotationGuesses(), points = std::move(points)]() mutable
+                 -> std::shared_ptr<PreparedTissue> {
+                   lowerThisThreadPriority();
+                   nameThisThread("ns_adapt");
+                   HexMesh mesh;
+                   HangingNodes hanging;
+                   VecX xt, vt;
+                   try {
+                     auto d = std::make_shared<PassDecision>();
+                     const auto t0 = steadyNow();
+                     d->estimate = estimator->estimate(x, reference, &guesses);
+                     const auto t1 = steadyNow();
+                     d->result = adaptation->adapt(d->estimate);
+                     if (d->result.changed) {
+                       const auto& act = adaptation->active();
+                       d->levels = act.level;
+                       d->hanging = act.numHanging();
+                       mesh = act.mesh;
+                       if (immersed_) setFractions(mesh, act.cell);
+                       hanging = act.hanging;
+                       xt = adaptation->transfer(x);
+                       vt = adaptation->transfer(v);
+                     }
+                     d->estimate_ms = msBetween(t0, t1);
+                     d->mark_refine_ms = msSince(t1);
+                     const double delay = g_rebuild_delay_ms;  // tests: a late pass
+                     if (delay > 0) std::this_thread::sleep_for(std::chrono::duration<double, std::milli>(delay));
+                     const bool changed = d->result.changed;
+                     decided.set_value(std::move(d));  // from here on, nothing of the simulation's is touched
+                     if (!changed) return nullptr;
+                   } catch (...) {
+                     decided.set_exception(std::current_exception());
+                     return nullptr;
+                   }
+                   return prepareTissue(scene_, h, shift, load_scale, std::move(mesh), std::move(hanging), xt, vt,
+                                        points);
+                 })
+          .share();
+  pending_pass_ = std::move(pp);
+  ++background_passes_;
+}
+
+void Simulation::takePass() {
+  PendingPass& pp = *pending_pass_;
+  if (pp.decision.wait_for(std::chrono::seconds(0)) != std::future_status::ready) ++pass_waits_;
+  const std::shared_ptr<const PassDecision> d = pp.decision.get();  // rethrows the pass's error
+  estimate_ = d->estimate;  // the last one made (of the pass's step, not of this one)
+  estimate_ever_ = true;
+  last_.refined += d->result.refined;
+  last_.coarsened += d->result.coarsened;
+  if (d->result.changed) {
+    auto pending = std::make_unique<PendingRebuild>();
+    pending->switch_step = pp.switch_step;
+    pending->levels = d->levels;
+    pending->hanging = d->hanging;
+    pending->job = pp.build;
+    tissue_->holdFactorRefresh(true);
+    pending_rebuild_ = std::move(pending);
+    ++deferred_rebuilds_;
+  }
+  pending_pass_.reset();
+}
+
+long Simulation::estimateLagSteps() const {
+  const double d = scene_.adaptivity ? scene_.adaptivity->estimate_delay : 0.0;
+  return d > 0 ? std::max(1L, std::lround(d / dt_)) : 0;
+}
+
+void Simulation::waitForPass(bool build) const {
+  if (!pending_pass_) return;
+  pending_pass_->decision.wait();
+  if (build && pending_pass_->build.valid()) pending_pass_->build.wait();
 }
 
 long Simulation::rebuildLagSteps() const {
@@ -608,6 +735,8 @@ void Simulation::finishRebuild() {
 
 AdaptationResult Simulation::refineElements(const std::vector<int>& elements) {
   if (!adaptation_) throw std::logic_error("refineElements: the scene has no adaptivity section");
+  if (pending_pass_) takePass();
+  if (pending_rebuild_) finishRebuild();
   const AdaptationResult r = adaptation_->refineElements(elements);
   if (r.changed) rebuildTissue();
   return r;
@@ -615,6 +744,8 @@ AdaptationResult Simulation::refineElements(const std::vector<int>& elements) {
 
 AdaptationResult Simulation::coarsenElements(const std::vector<int>& elements) {
   if (!adaptation_) throw std::logic_error("coarsenElements: the scene has no adaptivity section");
+  if (pending_pass_) takePass();
+  if (pending_rebuild_) finishRebuild();
   const AdaptationResult r = adaptation_->coarsenElements(elements);
   if (r.changed) rebuildTissue();
   return r;
@@ -622,7 +753,15 @@ AdaptationResult Simulation::coarsenElements(const std::vector<int>& elements) {
 
 void Simulation::adaptMesh(bool defer) {
   // A pass estimates the mesh the last pass decided on: a deferred change switches first.
+  if (pending_pass_) takePass();
   if (pending_rebuild_) finishRebuild();
+  if (defer && estimateLagSteps() > 0 && goal_targets_.empty()) {
+    const auto t0 = steadyNow();
+    startPass();
+    last_.adapted = true;
+    last_.estimate_ms = msSince(t0);  // this thread's share: the copies
+    return;
+  }
   const auto t0 = steadyNow();
   errorEstimate();
   for (int t : goal_targets_) targetError(t);
@@ -743,12 +882,17 @@ const StepStats& Simulation::step() {
     // A deferred mesh change switches at its step, at this step boundary. A pass due while
     // one is being built, or at the switch, waits for the first step on the new mesh: its
     // estimate must be of a state computed there, not of one carried over.
+    // A background pass's decision is taken up at its step, or when the next pass falls due
+    // (then waited for if need be): a change becomes the deferred change a pass on this
+    // thread would have started, with the same switch step.
     bool switched = false;
+    if (pending_pass_ && step_ >= pending_pass_->take_step) takePass();
     if (pending_rebuild_ && step_ >= pending_rebuild_->switch_step) {
       finishRebuild();
       switched = true;
     }
     pass_due_ = pass_due_ || (step_ - step_base_) % every_steps_ == 0 || signature != contact_signature_;
+    if (pass_due_ && pending_pass_) takePass();
     if (pass_due_ && !pending_rebuild_ && !switched) {
       pass_due_ = false;
       adaptMesh(scene_.solver.mode == SolverSettings::Mode::Dynamic);

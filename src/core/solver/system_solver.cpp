@@ -48,6 +48,8 @@ SystemSolver::SystemSolver(const SystemSolver& o, const CorotationalHexModel& mo
     pending_ = std::make_unique<Refresh>();
     pending_->factor = std::make_unique<CholmodSolver>(*o.pending_->factor);
     pending_->requested_call = o.pending_->requested_call;
+    pending_->column_dofs = o.pending_->column_dofs;
+    pending_->columns = o.pending_->columns;
     pending_->work_ms = o.pending_->work_ms;
     std::promise<bool> p;
     p.set_value(ok);
@@ -111,7 +113,8 @@ void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, Linea
   calls_since_factor_ = 0;
 }
 
-void SystemSolver::startRefresh(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st) {
+void SystemSolver::startRefresh(const VecX& mass_free, double c_m, double c_k, LinearSolveStats& st,
+                                const std::function<std::vector<int>()>& column_dofs) {
   // On this thread only what the matrix depends on (rotations, mass, scales, extra blocks):
   // a few hundred kilobytes. The thread reads the model's element references and the
   // assembler's scatter map, which do not change while this solver lives.
@@ -123,12 +126,16 @@ void SystemSolver::startRefresh(const VecX& mass_free, double c_m, double c_k, L
   r->c_k = c_k;
   r->extra = extra_ ? *extra_ : ElementBlocks{};
   r->requested_call = calls_;
+  r->column_dofs = column_dofs ? column_dofs() : std::vector<int>{};
+  r->columns.resize(0, 0);
+  columns_version_ = -1;  // a swapped refresh's columns not taken are gone (r may be its buffers)
   Refresh* job = r.get();
   const CorotationalHexModel* model = &model_;
   const SymmetricAssembler* assembler = &assembler_;
   const CholmodSolver* in_use = chol_.get();
   r->done = std::async(std::launch::async, [job, model, assembler, in_use] {
               lowerThisThreadPriority();
+              nameThisThread("ns_refactor");
               const auto t0 = steadyNow();
               // The first refresh copies the factor in use (its analysis; the values are
               // overwritten) and the matrix's pattern here: on the stepping thread the copy
@@ -149,6 +156,12 @@ void SystemSolver::startRefresh(const VecX& mass_free, double c_m, double c_k, L
                 assembler->addElementTo(v, job->extra.element[i], job->extra.K[i].data(), job->c_k);
               if (job->c_m != 0.0) assembler->addDiagonalTo(v, job->mass_free, job->c_m);
               const bool ok = job->factor->factorize(job->matrix);
+              if (ok && !job->column_dofs.empty()) {
+                const auto n = static_cast<Eigen::Index>(job->matrix.rows());
+                Eigen::MatrixXd E = Eigen::MatrixXd::Zero(n, static_cast<Eigen::Index>(job->column_dofs.size()));
+                for (size_t j = 0; j < job->column_dofs.size(); ++j) E(job->column_dofs[j], static_cast<Eigen::Index>(j)) = 1.0;
+                job->factor->solve(E, job->columns);
+              }
               const double delay = g_refresh_delay_ms;
               if (delay > 0) std::this_thread::sleep_for(std::chrono::duration<double, std::milli>(delay));
               job->work_ms = msSince(t0);
@@ -170,6 +183,7 @@ bool SystemSolver::finishRefresh(LinearSolveStats& st) {
   if (ok) {
     std::swap(chol_, r.factor);  // the old factor's buffers serve the next refresh
     ++version_;
+    columns_version_ = r.columns.size() > 0 ? version_ : -1;
     stale_ = false;
     calls_since_factor_ = calls_ - r.requested_call;
     st.async_swapped = true;
@@ -179,7 +193,7 @@ bool SystemSolver::finishRefresh(LinearSolveStats& st) {
 }
 
 LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x,
-                                     double tolerance) {
+                                     double tolerance, const std::function<std::vector<int>()>& column_dofs) {
   LinearSolveStats st;
   ++calls_;
   const bool direct = settings_.method == LinearSolverSettings::Method::Direct;
@@ -195,7 +209,7 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
       (settings_.refactor_every > 0 && calls_since_factor_ >= settings_.refactor_every)) {
     refactor(mass_free, c_m, c_k, st);
   } else if (stale_ && !pending_ && !hold_) {
-    if (async_) startRefresh(mass_free, c_m, c_k, st);
+    if (async_) startRefresh(mass_free, c_m, c_k, st, column_dofs);
     else refactor(mass_free, c_m, c_k, st);
   }
   ++calls_since_factor_;
@@ -253,6 +267,17 @@ int SystemSolver::staleBudget() const {
   const double lnz = chol_->factorNonzeros();
   const double iterations = lnz > 0 ? chol_->factorFlops() / (4.0 * lnz) / kFactorToSolveRate : 0.0;
   return std::clamp(static_cast<int>(std::ceil(iterations)), settings_.refresh_iterations + 1, settings_.max_iterations);
+}
+
+bool SystemSolver::takeRefreshColumns(std::vector<int>& dofs, Eigen::MatrixXd& X, long& version) {
+  if (columns_version_ < 0 || !spare_) return false;
+  dofs = std::move(spare_->column_dofs);
+  X = std::move(spare_->columns);
+  spare_->column_dofs.clear();
+  spare_->columns.resize(0, 0);
+  version = columns_version_;
+  columns_version_ = -1;
+  return true;
 }
 
 LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m, double c_k, const Eigen::MatrixXd& B,

@@ -34,4 +34,16 @@ void ComplianceCache::prepare(const std::vector<int>& free_dofs, const CholmodSo
   for (size_t j = 0; j < todo.size(); ++j) columns_[todo[j]] = {X.col(static_cast<Eigen::Index>(j)), version};
 }
 
+std::vector<int> ComplianceCache::dofs() const {
+  std::vector<int> d;
+  d.reserve(columns_.size());
+  for (const auto& [f, c] : columns_) d.push_back(f);
+  std::sort(d.begin(), d.end());
+  return d;
+}
+
+void ComplianceCache::adopt(const std::vector<int>& dofs, const Eigen::MatrixXd& X, long version) {
+  for (size_t j = 0; j < dofs.size(); ++j) columns_[dofs[j]] = {X.col(static_cast<Eigen::Index>(j)), version};
+}
+
 }  // namespace needle_sim
