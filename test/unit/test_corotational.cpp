@@ -108,3 +108,44 @@ TEST(Corotational, InvertedElementGivesProperRotationAndFiniteForces) {
   for (int a = 4; a < 8; ++a) fz_top += force[3 * a + 2];
   EXPECT_GT(fz_top, 0);
 }
+
+// The rotation part of the tangent (RotationTerms) completes R K0 R^T to the derivative of
+// the internal force: (R K0 R^T + K_rot) v = -(f(x + e v) - f(x - e v)) / 2e, the rotations
+// recomputed at each side. Without K_rot the difference is of the size of the stresses times
+// the rotations, which the check must see (it could fail: a sign or a transpose off).
+TEST(Corotational, RotationTermsCompleteTheConsistentTangent) {
+  Fixture f;
+  // A large deformation: turned by 40 degrees and strained by up to 10 %.
+  const Mat3 Q = Eigen::AngleAxisd(0.7, Vec3(1, -2, 0.5).normalized()).toRotationMatrix();
+  const VecX x = Fixture::transform(f.deformed(5, 0.001), Q, Vec3(0.01, 0, 0));
+  const VecX v = f.deformed(13, 1.0) - f.rest;
+  auto force = [&](const VecX& y) {
+    f.model.updateRotations(y);
+    VecX g = VecX::Zero(y.size());
+    f.model.addInternalForce(y, g);
+    return g;
+  };
+  const double eps = 1e-7;
+  const VecX fd = -(force(x + eps * v) - force(x - eps * v)) / (2 * eps);
+  f.model.updateRotations(x);
+  VecX plain = VecX::Zero(v.size());
+  f.model.addStiffnessProduct(v, 1.0, plain);
+  CorotationalHexModel::RotationTerms t;
+  f.model.rotationTerms(x, t);
+  VecX full = plain;
+  f.model.addRotationStiffnessProduct(t, v, 1.0, full);
+  EXPECT_LT((full - fd).norm(), 1e-6 * fd.norm());
+  EXPECT_GT((plain - fd).norm(), 1e-2 * fd.norm());
+  // A rigid rotation's spin turns the forces: K v = w x f for v = w x x.
+  const Vec3 w(0.3, -0.2, 0.9);
+  VecX spin(x.size()), turned(x.size());
+  const VecX f0 = force(x);
+  for (int i = 0; i < x.size() / 3; ++i) {
+    spin.segment<3>(3 * i) = w.cross(Vec3(x.segment<3>(3 * i)));
+    turned.segment<3>(3 * i) = -w.cross(Vec3(f0.segment<3>(3 * i)));
+  }
+  VecX k = VecX::Zero(x.size());
+  f.model.addStiffnessProduct(spin, 1.0, k);
+  f.model.addRotationStiffnessProduct(t, spin, 1.0, k);
+  EXPECT_LT((k - turned).norm(), 1e-9 * f0.norm());
+}

@@ -6,6 +6,7 @@
 
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/solver/cholmod_solver.hpp"
+#include "needle_sim/solver/gmres.hpp"
 #include "needle_sim/solver/system_solver.hpp"
 
 using namespace needle_sim;
@@ -252,4 +253,39 @@ TEST(SystemSolver, BackgroundRefreshComputesTheAskedColumnsWithItsFactor) {
     EXPECT_LT((X.col(static_cast<Eigen::Index>(j)) - Ainv.col(asked[j])).norm(), 1e-8 * col.norm());
   }
   EXPECT_FALSE(solver.takeRefreshColumns(got, X, version)) << "handed over once";
+}
+
+// GMRES on a nonsymmetric system A = S + N (S SPD, N skew plus a small nonsymmetric part),
+// right-preconditioned by a factor of S, as static Newton with the rotation tangent runs it:
+// it must reach the asked true residual and the dense LU's solution, and with the exact
+// preconditioner of A converge in one iteration.
+TEST(Gmres, SolvesANonsymmetricSystemPreconditionedByItsSymmetricPart) {
+  const int n = 60;
+  Eigen::MatrixXd R = Eigen::MatrixXd::Random(n, n);
+  const Eigen::MatrixXd S = R * R.transpose() + n * Eigen::MatrixXd::Identity(n, n);
+  const Eigen::MatrixXd W = Eigen::MatrixXd::Random(n, n);
+  const Eigen::MatrixXd A = S + 0.3 * (W - W.transpose()) + 0.1 * W;
+  const VecX b = VecX::Random(n);
+  const Eigen::LLT<Eigen::MatrixXd> llt(S);
+  auto apply = [&](const VecX& v, VecX& out) { out = A * v; };
+  auto precondition = [&](const VecX& r, VecX& z) { z = llt.solve(r); };
+  VecX x = VecX::Zero(n);
+  const PcgResult res = gmres(apply, precondition, b, x, 1e-10, 50);
+  EXPECT_TRUE(res.converged);
+  EXPECT_GT(res.iterations, 1);
+  EXPECT_LT((b - A * x).norm(), 1e-10 * b.norm());
+  EXPECT_LT(res.relative_residual, 1e-10);
+  const VecX ref = A.partialPivLu().solve(b);
+  EXPECT_LT((x - ref).norm(), 1e-8 * ref.norm());
+  // Too few iterations: reported as not converged, with the true residual.
+  VecX y = VecX::Zero(n);
+  const PcgResult short_run = gmres(apply, precondition, b, y, 1e-10, 2);
+  EXPECT_FALSE(short_run.converged);
+  EXPECT_NEAR(short_run.relative_residual, (b - A * y).norm() / b.norm(), 1e-12);
+  // The exact inverse as preconditioner: one iteration.
+  const Eigen::PartialPivLU<Eigen::MatrixXd> lu(A);
+  VecX z = VecX::Zero(n);
+  const PcgResult exact = gmres(apply, [&](const VecX& r, VecX& out) { out = lu.solve(r); }, b, z, 1e-10, 50);
+  EXPECT_EQ(exact.iterations, 1);
+  EXPECT_TRUE(exact.converged);
 }

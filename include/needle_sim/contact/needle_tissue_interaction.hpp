@@ -49,6 +49,18 @@ struct InteractionStats {
   double ms = 0;  // whole constraint phase
 };
 
+// What the interaction looks up on a tissue mesh (its surface, a locator by rest position,
+// the elements around each node): it depends on the mesh only, so a mesh change builds it
+// with the new body, off the stepping thread (NeedleTissueInteraction::bind), and the switch
+// only takes it.
+struct TissueBinding {
+  std::unique_ptr<TissueSurface> surface;
+  std::unique_ptr<PointLocator> locator;
+  std::vector<std::vector<int>> node_elements;
+  // For `mesh` (which must outlive it), with `organ` the embedded organ surface or nullptr.
+  static TissueBinding make(const HexMesh& mesh, const EmbeddedSurface* organ);
+};
+
 class NeedleTissueInteraction {
  public:
   // `organ`: the embedded organ surface of immersed geometry (the needle punctures it
@@ -70,6 +82,8 @@ class NeedleTissueInteraction {
   // The tissue body was rebuilt on a refined or coarsened mesh: every constraint point is
   // re-embedded by its rest position, the surface and locators are rebuilt.
   void rebind(TissueBody& tissue, const EmbeddedSurface* organ = nullptr);
+  // The same with the binding of tissue's mesh made beforehand (TissueBinding::make).
+  void rebind(TissueBody& tissue, TissueBinding binding);
 
   InsertionState state(int needle) const { return tracks_[needle].state; }
   int activePoints(int needle) const;
@@ -121,7 +135,7 @@ class NeedleTissueInteraction {
   // A shaft point's lateral compliance [m/N] on needle n in tissue element e
   // (interface_compliance.hpp; 0: rigid).
   double interfaceCompliance(int n, int e) const;
-  void bindTissue(TissueBody& tissue, const EmbeddedSurface* organ);
+  void bindTissue(TissueBody& tissue, TissueBinding binding);
 
   InteractionSettings settings_;
   TissueBody* tissue_ = nullptr;

@@ -4,7 +4,8 @@
 // Per element a rotation R is extracted from the deformation gradient at the centroid;
 // the element then behaves linearly in its rotated frame:
 //   internal force   f_e = -R K0 (R^T x_e - X_e)
-//   tangent          K_e =  R K0 R^T          (no geometric stiffness term)
+//   tangent          K_e =  R K0 R^T          (the dynamic steps' and the preconditioners')
+// plus, for static Newton, the part from the rotation's own change (RotationTerms below).
 // K0 is computed once at rest by 2x2x2 Gauss and shared between elements of identical
 // shape (a uniform grid stores a single 24x24 matrix).
 //
@@ -66,6 +67,22 @@ class CorotationalHexModel {
   // The same with a given rotation (reads the element's reference only: another thread may
   // assemble from rotations captured earlier).
   void elementStiffness(int e, const Mat3& R, hex8::Mat24& Ke) const;
+  // The rest of the consistent tangent, from the rotation's change with x (doc/method.md
+  // "Static solves"): with dR = [w]x R and w = H^-1 sum_a (R g_a) x dx_a (the polar
+  // decomposition's derivative, H = tr(S) I - S, S = F R^T, g_a = dN_a/dX at the centroid),
+  //   K_rot dx = w x (R K0 u)_a - R K0 R^T (w x x~_b)_a      (x~: positions about the centroid).
+  // It is not symmetric (the polar rotation is not the energy's minimiser): static Newton
+  // takes it in the operator of a GMRES step, preconditioned by the factor of R K0 R^T.
+  // Without it Newton converges only linearly once the elements have turned.
+  struct RotationTerms {
+    std::vector<Mat3> h_inv;                                 // per element (0: skipped)
+    std::vector<Eigen::Matrix<double, 24, 1>> force;         // R K0 u, world frame
+    std::vector<Eigen::Matrix<double, 24, 1>> centred;       // x~
+  };
+  // At positions x with the rotations of updateRotations(x).
+  void rotationTerms(const VecX& x, RotationTerms& t) const;
+  // out += s * K_rot v.
+  void addRotationStiffnessProduct(const RotationTerms& t, const VecX& v, double s, VecX& out) const;
   // Elastic energy 1/2 sum_e u_e^T K0 u_e in the corotated frames.
   double elasticEnergy(const VecX& x) const;
 

@@ -195,6 +195,8 @@ class Simulation {
   static std::shared_ptr<PreparedTissue> prepareTissue(const Scene& scene, double h, const BrainShift* shift,
                                                        double load_scale, HexMesh mesh, HangingNodes hanging,
                                                        const VecX& x, const VecX& v, const std::vector<Vec3>& points);
+  // A copy of a prepared body for a copy of the simulation (its own lookups on its mesh).
+  static std::shared_ptr<PreparedTissue> copyPrepared(const PreparedTissue& p);
   // The levels and hanging nodes of the adaptive mesh now in use.
   void noteActiveMesh();
   // rebuild_delay in steps of the current dt (0: synchronous).
@@ -210,6 +212,8 @@ class Simulation {
   static void support(const BrainShift* shift, TissueBody& body, const EmbeddedSurface* organ);
   void embedProbes();
   void embedTargets();
+  void embedProbes(const PointLocator& locator);
+  void embedTargets(const PointLocator& locator);
   // Volume fractions of the active mesh's elements (immersed geometry), cached per cell.
   void setFractions(HexMesh& mesh, const std::vector<int>& cells);
   // Loads that outlive a mesh change: the brain shift's gravity and skull reactions, and the
@@ -246,6 +250,10 @@ class Simulation {
     std::unique_ptr<TissueBody> tissue;  // with the brain shift's loads and support applied
     std::unique_ptr<EmbeddedSurface> organ;
     std::unique_ptr<SprEstimator> estimator;  // its per-mesh patch fits made
+    // The mesh's lookups, so the switch only re-embeds: the probes' and targets' locator,
+    // and the interaction's (with an interaction in the scene).
+    std::unique_ptr<PointLocator> locator;
+    TissueBinding binding;
   };
   struct PendingRebuild {
     std::shared_future<std::shared_ptr<PreparedTissue>> job;

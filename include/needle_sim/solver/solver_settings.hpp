@@ -12,6 +12,9 @@ struct SolverSettings {
   double rayleigh_stiffness = 0.0;  // beta
   double static_tolerance = 1e-8;   // relative residual of the Newton iteration
   int static_max_iterations = 50;
+  // Static Newton with the corotational tangent's rotation part (GMRES; doc/method.md
+  // "Static solves"): quadratic convergence under large rotations, at a dearer linear solve.
+  bool static_rotation_tangent = false;
   LinearSolverSettings linear;
 };
 

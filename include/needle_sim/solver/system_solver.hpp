@@ -112,6 +112,11 @@ class SystemSolver {
   // Adds c_k * blocks to A until cleared (nullptr); the caller keeps them alive and
   // invalidates the factor when they change.
   void setExtraStiffness(const ElementBlocks* blocks) { extra_ = blocks; }
+  // A term(v_full, c_k, out_full) adding c_k * N v to A v until cleared (nullptr), N not
+  // symmetric and not in the factor (the rotation part of the static tangent, kept alive by
+  // the caller): solve() then runs GMRES, preconditioned by the factor, instead of CG.
+  using OperatorTerm = std::function<void(const VecX&, double, VecX&)>;
+  void setNonsymmetricTerm(const OperatorTerm* term) { nonsymmetric_ = term; }
   // Factorises A = c_m M + c_k K at the model's current rotations now (a body built off the
   // stepping thread for a deferred mesh change gets its first factor there).
   LinearSolveStats factorNow(const VecX& mass_free, double c_m, double c_k) {
@@ -187,6 +192,7 @@ class SystemSolver {
   long columns_version_ = -1;       // spare_'s columns belong to this factor version (-1: none to take)
   mutable VecX full_in_, full_out_;
   const ElementBlocks* extra_ = nullptr;
+  const OperatorTerm* nonsymmetric_ = nullptr;
 };
 
 }  // namespace needle_sim

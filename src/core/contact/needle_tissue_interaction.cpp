@@ -46,7 +46,7 @@ Mat3 frameFrom(const Vec3& d0) {
 NeedleTissueInteraction::NeedleTissueInteraction(const InteractionSettings& s, TissueBody& tissue,
                                                  std::vector<NeedleBody*> needles, const EmbeddedSurface* organ)
     : settings_(s), needles_(std::move(needles)), tracks_(needles_.size()) {
-  bindTissue(tissue, organ);
+  bindTissue(tissue, TissueBinding::make(tissue.mesh(), organ));
   for (size_t n = 0; n < needles_.size(); ++n)
     tracks_[n].sheathed = sheathOf(needles_, static_cast<int>(n), 1e-3 * settings_.shaft_spacing) >= 0;
 }
@@ -56,24 +56,35 @@ NeedleTissueInteraction::NeedleTissueInteraction(const NeedleTissueInteraction& 
     : settings_(o.settings_), needles_(std::move(needles)), tracks_(o.tracks_) {
   assert(needles_.size() == o.needles_.size());
   assert(tissue.mesh().numNodes() == o.tissue_->mesh().numNodes());
-  bindTissue(tissue, organ);
+  bindTissue(tissue, TissueBinding::make(tissue.mesh(), organ));
   constraints_.reserve(o.constraints_.size());
   for (const auto& c : o.constraints_) constraints_.push_back(c->clone());
 }
 
-void NeedleTissueInteraction::bindTissue(TissueBody& tissue, const EmbeddedSurface* organ) {
-  tissue_ = &tissue;
-  const HexMesh& mesh = tissue.mesh();
-  surface_ = organ ? std::make_unique<TissueSurface>(mesh, *organ) : std::make_unique<TissueSurface>(mesh);
-  rest_locator_ = std::make_unique<PointLocator>(mesh);
-  column_of_.assign(tissue.dofs().numFree(), -1);
-  node_elements_.assign(mesh.numNodes(), {});
+TissueBinding TissueBinding::make(const HexMesh& mesh, const EmbeddedSurface* organ) {
+  TissueBinding b;
+  b.surface = organ ? std::make_unique<TissueSurface>(mesh, *organ) : std::make_unique<TissueSurface>(mesh);
+  b.locator = std::make_unique<PointLocator>(mesh);
+  b.node_elements.assign(mesh.numNodes(), {});
   for (int e = 0; e < mesh.numElements(); ++e)
-    for (int a : mesh.element(e)) node_elements_[a].push_back(e);
+    for (int a : mesh.element(e)) b.node_elements[a].push_back(e);
+  return b;
+}
+
+void NeedleTissueInteraction::bindTissue(TissueBody& tissue, TissueBinding binding) {
+  tissue_ = &tissue;
+  surface_ = std::move(binding.surface);
+  rest_locator_ = std::move(binding.locator);
+  node_elements_ = std::move(binding.node_elements);
+  column_of_.assign(tissue.dofs().numFree(), -1);
 }
 
 void NeedleTissueInteraction::rebind(TissueBody& tissue, const EmbeddedSurface* organ) {
-  bindTissue(tissue, organ);
+  rebind(tissue, TissueBinding::make(tissue.mesh(), organ));
+}
+
+void NeedleTissueInteraction::rebind(TissueBody& tissue, TissueBinding binding) {
+  bindTissue(tissue, std::move(binding));
   // Constraint points are material points: found again by their rest position (a point of
   // an immersed surface may lie a rounding error outside the cells: the nearest is taken).
   for (auto& c : constraints_) {

@@ -188,6 +188,56 @@ void CorotationalHexModel::elementStiffness(int e, const Mat3& R, hex8::Mat24& K
       Ke.block<3, 3>(3 * a, 3 * b).noalias() = R * K0.block<3, 3>(3 * a, 3 * b) * R.transpose();
 }
 
+void CorotationalHexModel::rotationTerms(const VecX& x, RotationTerms& t) const {
+  const int n = mesh_.numElements();
+  t.h_inv.resize(n);
+  t.force.resize(n);
+  t.centred.resize(n);
+  for (int e = 0; e < n; ++e) {
+    const auto& el = mesh_.element(e);
+    const auto& G = refs_[ref_of_[e]].grad_centroid;
+    const Mat3& R = rot_[e];
+    Mat3 F = Mat3::Zero();
+    Vec3 xc = Vec3::Zero();
+    for (int a = 0; a < 8; ++a) {
+      F.noalias() += node3(x, el[a]) * G.row(a);
+      xc += node3(x, el[a]);
+    }
+    xc /= 8;
+    const Mat3 B = F * R.transpose();
+    const Mat3 S = 0.5 * (B + B.transpose());
+    const Mat3 H = S.trace() * Mat3::Identity() - S;
+    // Where the extraction itself could not take Newton steps (flat or inverted elements)
+    // the derivative is not defined: those elements keep the plain tangent.
+    Eigen::LLT<Mat3> llt(H);
+    const bool ok = S.trace() > 0 && llt.info() == Eigen::Success && H.diagonal().minCoeff() > 1e-6 * S.trace();
+    t.h_inv[e] = ok ? Mat3(llt.solve(Mat3::Identity())) : Mat3::Zero();
+    const Eigen::Matrix<double, 24, 1> fl = timesK0(refs_[ref_of_[e]].K0, localDisplacement(e, x));
+    for (int a = 0; a < 8; ++a) {
+      t.force[e].segment<3>(3 * a) = R * fl.segment<3>(3 * a);
+      t.centred[e].segment<3>(3 * a) = node3(x, el[a]) - xc;
+    }
+  }
+}
+
+void CorotationalHexModel::addRotationStiffnessProduct(const RotationTerms& t, const VecX& v, double s,
+                                                        VecX& out) const {
+  Eigen::Matrix<double, 24, 1> y;
+  for (int e = 0; e < mesh_.numElements(); ++e) {
+    if (t.h_inv[e].isZero(0)) continue;
+    const auto& el = mesh_.element(e);
+    const auto& G = refs_[ref_of_[e]].grad_centroid;
+    const Mat3& R = rot_[e];
+    Vec3 g = Vec3::Zero();
+    for (int a = 0; a < 8; ++a) g += (R * G.row(a).transpose()).cross(node3(v, el[a]));
+    const Vec3 w = t.h_inv[e] * g;
+    for (int b = 0; b < 8; ++b) y.segment<3>(3 * b).noalias() = R.transpose() * w.cross(t.centred[e].segment<3>(3 * b));
+    const Eigen::Matrix<double, 24, 1> k = timesK0(refs_[ref_of_[e]].K0, y);
+    for (int a = 0; a < 8; ++a)
+      node3(out, el[a]).noalias() += s * (w.cross(t.force[e].segment<3>(3 * a)) - R * k.segment<3>(3 * a));
+  }
+}
+
 double CorotationalHexModel::elasticEnergy(const VecX& x) const {
   double E = 0;
   for (int e = 0; e < mesh_.numElements(); ++e) {

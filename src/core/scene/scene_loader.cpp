@@ -46,7 +46,14 @@ void readSolver(const SceneReader& r, const YAML::Node& n, Scene& s) {
     if (s.solver.rayleigh_stiffness < 0) r.fail("solver.rayleigh.stiffness", "must be >= 0");
   }
   if (auto st = r.child(n, "solver", "static", false)) {
-    r.checkKeys(st, "solver.static", {"tolerance", "max_iterations"});
+    r.checkKeys(st, "solver.static", {"tolerance", "max_iterations", "rotation_tangent"});
+    if (auto rt = r.child(st, "solver.static", "rotation_tangent", false)) {
+      try {
+        s.solver.static_rotation_tangent = rt.as<bool>();
+      } catch (const YAML::Exception&) {
+        r.fail("solver.static.rotation_tangent", "must be true or false");
+      }
+    }
     if (st["tolerance"]) s.solver.static_tolerance = r.positive(st, "solver.static", "tolerance");
     if (auto it = r.child(st, "solver.static", "max_iterations", false)) {
       const long long v = r.integer(it, "solver.static.max_iterations");
@@ -95,6 +102,9 @@ void readSolver(const SceneReader& r, const YAML::Node& n, Scene& s) {
       else r.fail(p + ".ordering", "must be 'auto', 'amd' or 'metis', got '" + v + "'");
     }
   }
+  // The rotation part enters the Krylov operator; a direct solve uses the factor alone.
+  if (s.solver.static_rotation_tangent && s.solver.linear.method == LinearSolverSettings::Method::Direct)
+    r.fail("solver.static.rotation_tangent", "needs solver.linear.method 'pcg' (the direct method solves with the symmetric factor only)");
 }
 
 void readTissue(const SceneReader& r, const YAML::Node& n, Scene& s) {

@@ -170,10 +170,7 @@ Simulation::Simulation(const Simulation& o)
   if (o.pending_rebuild_) {
     // The copy switches at the same step to a copy of the same body (finished here, so that
     // both step alike whatever the thread's timing).
-    const std::shared_ptr<PreparedTissue> p = o.pending_rebuild_->job.get();
-    auto q = std::make_shared<PreparedTissue>();
-    q->tissue = std::make_unique<TissueBody>(*p->tissue);
-    if (p->organ) q->organ = std::make_unique<EmbeddedSurface>(p->organ->restPtr(), q->tissue->mesh());
+    const std::shared_ptr<PreparedTissue> q = copyPrepared(*o.pending_rebuild_->job.get());
     std::promise<std::shared_ptr<PreparedTissue>> ready;
     ready.set_value(q);
     pending_rebuild_ = std::make_unique<PendingRebuild>(*o.pending_rebuild_);
@@ -185,11 +182,7 @@ Simulation::Simulation(const Simulation& o)
     pending_pass_ = std::make_unique<PendingPass>(*o.pending_pass_);
     const std::shared_ptr<PreparedTissue> p = o.pending_pass_->build.get();
     std::shared_ptr<PreparedTissue> q;
-    if (p) {
-      q = std::make_shared<PreparedTissue>();
-      q->tissue = std::make_unique<TissueBody>(*p->tissue);
-      if (p->organ) q->organ = std::make_unique<EmbeddedSurface>(p->organ->restPtr(), q->tissue->mesh());
-    }
+    if (p) q = copyPrepared(*p);
     std::promise<std::shared_ptr<PreparedTissue>> ready;
     ready.set_value(q);
     pending_pass_->build = ready.get_future().share();
@@ -332,16 +325,18 @@ EmbeddedPoint Simulation::embedPoint(const PointLocator& locator, const Vec3& p,
   return ep;
 }
 
-void Simulation::embedProbes() {
+void Simulation::embedProbes() { embedProbes(PointLocator(tissue_->mesh())); }
+
+void Simulation::embedProbes(const PointLocator& locator) {
   probes_.clear();
-  const PointLocator locator(tissue_->mesh());
   for (size_t i = 0; i < scene_.probes.size(); ++i)
     probes_.push_back(
         embedPoint(locator, scene_.probes[i].point, scene_.file, "probes[" + std::to_string(i) + "].point", "point"));
 }
 
-void Simulation::embedTargets() {
-  const PointLocator locator(tissue_->mesh());
+void Simulation::embedTargets() { embedTargets(PointLocator(tissue_->mesh())); }
+
+void Simulation::embedTargets(const PointLocator& locator) {
   for (auto& t : targets_) {  // (again after a mesh change: by their planning positions)
     const bool from_scene = t.key != "set_target";
     t.point = embedPoint(locator, t.planned, from_scene ? scene_.file : "",
@@ -578,6 +573,15 @@ void Simulation::startRebuild() {
   ++deferred_rebuilds_;
 }
 
+std::shared_ptr<Simulation::PreparedTissue> Simulation::copyPrepared(const PreparedTissue& p) {
+  auto q = std::make_shared<PreparedTissue>();
+  q->tissue = std::make_unique<TissueBody>(*p.tissue);
+  if (p.organ) q->organ = std::make_unique<EmbeddedSurface>(p.organ->restPtr(), q->tissue->mesh());
+  // Its lookups are made at its switch if it ever steps there (finishRebuild): a copy taken
+  // for an estimate, on the stepping thread, never does.
+  return q;
+}
+
 std::shared_ptr<Simulation::PreparedTissue> Simulation::prepareTissue(const Scene& scene, double h,
                                                                       const BrainShift* shift, double load_scale,
                                                                       HexMesh mesh, HangingNodes hanging, const VecX& x,
@@ -589,7 +593,8 @@ std::shared_ptr<Simulation::PreparedTissue> Simulation::prepareTissue(const Scen
   if (scene.tissue.geometry.kind == TissueGeometry::Kind::Surface)
     p->organ = std::make_unique<EmbeddedSurface>(scene.tissue.geometry.surface, m);
   persistentLoads(shift, load_scale, *p->tissue, p->organ.get());
-  PointLocator locator(m);
+  p->locator = std::make_unique<PointLocator>(m);
+  const PointLocator& locator = *p->locator;
   std::vector<int> elements;
   for (const Vec3& r : points) {
     EmbeddedPoint ep;
@@ -599,6 +604,7 @@ std::shared_ptr<Simulation::PreparedTissue> Simulation::prepareTissue(const Scen
   elements.erase(std::unique(elements.begin(), elements.end()), elements.end());
   p->tissue->prepareForSteps(h, elements);
   p->estimator = std::make_unique<SprEstimator>(p->tissue->model());
+  if (scene.interaction) p->binding = TissueBinding::make(m, p->organ.get());
   const double delay = g_rebuild_delay_ms;
   if (delay > 0) std::this_thread::sleep_for(std::chrono::duration<double, std::milli>(delay));
   return p;
@@ -723,9 +729,13 @@ void Simulation::finishRebuild() {
   tissue_->setState(x, v);
   if (immersed_) organ_ = std::move(p->organ);
   estimator_ = std::move(p->estimator);  // (its loads and support were applied in the build)
-  embedProbes();
-  embedTargets();
-  if (interaction_) interaction_->rebind(*tissue_, organ_.get());
+  if (!p->locator) p->locator = std::make_unique<PointLocator>(tissue_->mesh());  // (a copy's)
+  embedProbes(*p->locator);
+  embedTargets(*p->locator);
+  if (interaction_) {
+    if (p->binding.locator) interaction_->rebind(*tissue_, std::move(p->binding));
+    else interaction_->rebind(*tissue_, organ_.get());
+  }
   levels_ = std::move(pr.levels);
   hanging_nodes_ = pr.hanging;
   pending_rebuild_.reset();

@@ -9,6 +9,7 @@
 #include "needle_sim/core/background_priority.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/core/stopwatch.hpp"
+#include "needle_sim/solver/gmres.hpp"
 #include "needle_sim/solver/pcg.hpp"
 
 namespace needle_sim {
@@ -82,6 +83,7 @@ void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const Ve
       for (int a = 0; a < 8; ++a) node3(full_out_, el[a]) += c_k * w.segment<3>(3 * a);
     }
   }
+  if (nonsymmetric_) (*nonsymmetric_)(full_in_, c_k, full_out_);
   dofs_.gather(full_out_, out);
   out.array() += c_m * mass_free.array() * v.array();
 }
@@ -225,7 +227,10 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
   auto M = [&](const VecX& r, VecX& z) { chol_->solve(r, z); };
   if (x.size() != b.size() || !x.allFinite()) x.setZero(b.size());
   const double tol = tolerance > 0 ? tolerance : settings_.tolerance;
-  PcgResult r = pcg(A, M, b, x, tol, st.refactored ? settings_.max_iterations : staleBudget());
+  auto krylov = [&](int max_iterations) {
+    return nonsymmetric_ ? gmres(A, M, b, x, tol, max_iterations) : pcg(A, M, b, x, tol, max_iterations);
+  };
+  PcgResult r = krylov(st.refactored ? settings_.max_iterations : staleBudget());
   int on_last_factor = r.iterations;  // CG iterations with the factor this call ends with
   // The preconditioner is too far off: take the pending refresh (waiting for it) and solve
   // again; if that is not enough either (it was made for an older matrix), refresh now.
@@ -237,7 +242,7 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
     }
     t0 = steadyNow();
     const int first = r.iterations;
-    r = pcg(A, M, b, x, tol, settings_.max_iterations);
+    r = krylov(settings_.max_iterations);
     on_last_factor = r.iterations;
     r.iterations += first;
   }
