@@ -282,6 +282,18 @@ TEST(Gmres, SolvesANonsymmetricSystemPreconditionedByItsSymmetricPart) {
   const PcgResult short_run = gmres(apply, precondition, b, y, 1e-10, 2);
   EXPECT_FALSE(short_run.converged);
   EXPECT_NEAR(short_run.relative_residual, (b - A * y).norm() / b.norm(), 1e-12);
+  // Without a preconditioner it needs more than one restart cycle (kGmresRestart vectors):
+  // the restarts must still converge, from the true residual.
+  // A spread spectrum (a positive definite symmetric part, 1 ... 1e4, plus a skew part) needs
+  // them: restarted GMRES converges when the symmetric part is positive definite (Elman).
+  Eigen::MatrixXd B = 0.5 * (W - W.transpose());
+  for (int i = 0; i < n; ++i) B(i, i) = std::pow(10.0, 4.0 * i / (n - 1));
+  VecX u = VecX::Zero(n);
+  const PcgResult plain = gmres([&](const VecX& v, VecX& out) { out = B * v; },
+                                [](const VecX& r, VecX& out) { out = r; }, b, u, 1e-10, 5000);
+  EXPECT_TRUE(plain.converged);
+  EXPECT_GT(plain.iterations, kGmresRestart);
+  EXPECT_LT((b - B * u).norm(), 1e-10 * b.norm());
   // The exact inverse as preconditioner: one iteration.
   const Eigen::PartialPivLU<Eigen::MatrixXd> lu(A);
   VecX z = VecX::Zero(n);

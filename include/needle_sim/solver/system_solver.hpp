@@ -183,6 +183,7 @@ class SystemSolver {
   std::unique_ptr<CholmodSolver> chol_;
   long version_ = 0;
   bool stale_ = true;          // refresh the factor (in the background if async)
+  int fresh_iterations_ = 0;   // GMRES iterations of the first solve with the factor (nonsymmetric term)
   bool must_refactor_ = false;  // refactorise before this call's solve (the matrix changed)
   bool async_ = true;
   bool hold_ = false;

@@ -577,8 +577,8 @@ std::shared_ptr<Simulation::PreparedTissue> Simulation::copyPrepared(const Prepa
   auto q = std::make_shared<PreparedTissue>();
   q->tissue = std::make_unique<TissueBody>(*p.tissue);
   if (p.organ) q->organ = std::make_unique<EmbeddedSurface>(p.organ->restPtr(), q->tissue->mesh());
-  // Its lookups are made at its switch if it ever steps there (finishRebuild): a copy taken
-  // for an estimate, on the stepping thread, never does.
+  // Its lookups are made at its own switch (finishRebuild), on the thread that steps the copy
+  // (a prediction's): a copy taken on the stepping thread for an estimate never gets there.
   return q;
 }
 

@@ -250,12 +250,17 @@ LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c
   st.iterations = r.iterations;
   st.relative_residual = r.relative_residual;
   if (!r.converged || !x.allFinite())
-    throw NumericalError(-1, "conjugate gradients did not converge (relative residual " +
+    throw NumericalError(-1, std::string(nonsymmetric_ ? "GMRES" : "conjugate gradients") + " did not converge (relative residual " +
                                  std::to_string(r.relative_residual) + ")");
   // Judged on the factor now in use: one just made for this matrix is not stale, however
   // many iterations the old one took first (a second refactorisation at the next call, for
   // nearly the same matrix, cost static Newton a factorisation per iteration).
-  if (on_last_factor > settings_.refresh_iterations && !pending_) stale_ = true;
+  // With a nonsymmetric term the factor (of the symmetric part) is never exact: GMRES takes
+  // several iterations with a fresh one, so staleness counts the iterations beyond those the
+  // first solve with the factor needed.
+  if (st.refactored) fresh_iterations_ = nonsymmetric_ ? on_last_factor : 0;
+  const int expected = nonsymmetric_ ? fresh_iterations_ : 0;
+  if (on_last_factor > settings_.refresh_iterations + expected && !pending_) stale_ = true;
   return st;
 }
 

@@ -59,16 +59,18 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     return fe.norm();
   };
   double ref = loadNorm(), rn0 = 0;
-  Detach detach{*solver_, supportOrNull()};  // the solver must not keep `blocks` past this call
-  SynchronousRefresh synchronous(*solver_);
   // The consistent tangent: the rotation part in the Newton steps' operator (GMRES), the
-  // factor of the symmetric part as their preconditioner. Without it Newton converged
-  // linearly (a residual ratio of 0.1-0.5 a step on the DBS brain shift).
+  // factor of the symmetric part as their preconditioner (doc/method.md "Static solves";
+  // pcg only: a direct solve uses the factor alone). Declared before `detach`, which clears
+  // the solver's pointer to it.
   CorotationalHexModel::RotationTerms rotation_terms;
   const SystemSolver::OperatorTerm rotation_product = [&](const VecX& v, double s, VecX& out) {
     model_->addRotationStiffnessProduct(rotation_terms, v, s, out);
   };
-  const bool rotation_tangent = settings_.static_rotation_tangent;
+  const bool rotation_tangent =
+      settings_.static_rotation_tangent && settings_.linear.method == LinearSolverSettings::Method::Pcg;
+  Detach detach{*solver_, supportOrNull()};  // the solver must not keep `blocks` past this call
+  SynchronousRefresh synchronous(*solver_);
   if (rotation_tangent) solver_->setNonsymmetricTerm(&rotation_product);
   // Residual (free DOFs) at the current x_, with the extra terms' blocks.
   auto residual = [&](VecX& out) {
