@@ -87,6 +87,8 @@ class CorotationalHexModel {
   double elasticEnergy(const VecX& x) const;
 
  private:
+  // F = sum_a x_a (dN_a/dX)^T at element e's centroid: what its rotation is extracted from.
+  Mat3 deformationGradient(int e, const VecX& x) const;
   // Local (corotated) displacement R^T x_e - X_e of element e.
   Eigen::Matrix<double, 24, 1> localDisplacement(int e, const VecX& x) const;
 

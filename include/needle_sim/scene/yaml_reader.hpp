@@ -83,6 +83,14 @@ class SceneReader {
     }
   }
 
+  bool boolean(const YAML::Node& n, const std::string& key) const {
+    try {
+      return n.as<bool>();
+    } catch (const YAML::Exception&) {
+      fail(key, "must be true or false");
+    }
+  }
+
   std::string string(const YAML::Node& n, const std::string& key) const {
     if (!n.IsScalar()) fail(key, std::string("must be a string, got ") + typeName(n));
     return n.Scalar();

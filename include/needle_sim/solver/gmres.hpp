@@ -23,12 +23,8 @@ template <class Apply, class Precondition>
 PcgResult gmres(const Apply& apply, const Precondition& precondition, const VecX& b, VecX& x, double tol,
                 int max_iterations) {
   PcgResult res;
+  if (solvedByZero(b, x, res)) return res;
   const double bnorm = b.norm();
-  if (bnorm == 0.0) {
-    x.setZero(b.size());
-    res.converged = true;
-    return res;
-  }
   if (x.size() != b.size()) x.setZero(b.size());
   VecX w(b.size()), z;
   std::vector<VecX> V;

@@ -12,18 +12,22 @@ struct PcgResult {
   bool converged = false;
 };
 
+// b = 0: x = 0 solves it exactly (and a relative residual has no scale). True when handled.
+inline bool solvedByZero(const VecX& b, VecX& x, PcgResult& res) {
+  if (b.norm() != 0.0) return false;
+  x.setZero(b.size());
+  res.converged = true;
+  return true;
+}
+
 // Solves A x = b starting from the x passed in. apply(v, out) computes out = A v;
 // precondition(r, z) computes z = M^{-1} r. Stops when ||b - A x|| <= tol ||b||.
 template <class Apply, class Precondition>
 PcgResult pcg(const Apply& apply, const Precondition& precondition, const VecX& b, VecX& x,
               double tol, int max_iterations) {
   PcgResult res;
+  if (solvedByZero(b, x, res)) return res;
   const double bnorm = b.norm();
-  if (bnorm == 0.0) {
-    x.setZero(b.size());
-    res.converged = true;
-    return res;
-  }
   VecX r(b.size()), z, p, Ap(b.size());
   if (x.size() != b.size()) x.setZero(b.size());
   apply(x, Ap);

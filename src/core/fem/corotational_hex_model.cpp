@@ -105,14 +105,19 @@ void CorotationalHexModel::resetRotations() {
   inverted_ = 0;
 }
 
+Mat3 CorotationalHexModel::deformationGradient(int e, const VecX& x) const {
+  const auto& el = mesh_.element(e);
+  const auto& G = refs_[ref_of_[e]].grad_centroid;
+  Mat3 F = Mat3::Zero();
+  for (int a = 0; a < 8; ++a) F.noalias() += node3(x, el[a]) * G.row(a);
+  return F;
+}
+
 void CorotationalHexModel::updateRotations(const VecX& x) {
   assert(x.size() == mesh_.numDofs());
   int inverted = 0;
   for (int e = 0; e < mesh_.numElements(); ++e) {
-    const auto& el = mesh_.element(e);
-    const auto& G = refs_[ref_of_[e]].grad_centroid;
-    Mat3 F = Mat3::Zero();
-    for (int a = 0; a < 8; ++a) F.noalias() += node3(x, el[a]) * G.row(a);
+    const Mat3 F = deformationGradient(e, x);
     if (!(F.determinant() > 0)) ++inverted;
     extractRotation(F, quat_[e]);
     rot_[e] = quat_[e].toRotationMatrix();
@@ -123,12 +128,8 @@ void CorotationalHexModel::updateRotations(const VecX& x) {
 Mat3 CorotationalHexModel::computeRotation(int e, const VecX& x) const { return computeRotation(e, x, quat_[e]); }
 
 Mat3 CorotationalHexModel::computeRotation(int e, const VecX& x, const Eigen::Quaterniond& guess) const {
-  const auto& el = mesh_.element(e);
-  const auto& G = refs_[ref_of_[e]].grad_centroid;
-  Mat3 F = Mat3::Zero();
-  for (int a = 0; a < 8; ++a) F.noalias() += node3(x, el[a]) * G.row(a);
   Eigen::Quaterniond q = guess;
-  extractRotation(F, q);
+  extractRotation(deformationGradient(e, x), q);
   return q.toRotationMatrix();
 }
 
@@ -195,16 +196,11 @@ void CorotationalHexModel::rotationTerms(const VecX& x, RotationTerms& t) const 
   t.centred.resize(n);
   for (int e = 0; e < n; ++e) {
     const auto& el = mesh_.element(e);
-    const auto& G = refs_[ref_of_[e]].grad_centroid;
     const Mat3& R = rot_[e];
-    Mat3 F = Mat3::Zero();
     Vec3 xc = Vec3::Zero();
-    for (int a = 0; a < 8; ++a) {
-      F.noalias() += node3(x, el[a]) * G.row(a);
-      xc += node3(x, el[a]);
-    }
+    for (int a = 0; a < 8; ++a) xc += node3(x, el[a]);
     xc /= 8;
-    const Mat3 B = F * R.transpose();
+    const Mat3 B = deformationGradient(e, x) * R.transpose();
     const Mat3 S = 0.5 * (B + B.transpose());
     const Mat3 H = S.trace() * Mat3::Identity() - S;
     // Where the extraction itself could not take Newton steps (flat or inverted elements)

@@ -47,13 +47,8 @@ void readSolver(const SceneReader& r, const YAML::Node& n, Scene& s) {
   }
   if (auto st = r.child(n, "solver", "static", false)) {
     r.checkKeys(st, "solver.static", {"tolerance", "max_iterations", "rotation_tangent"});
-    if (auto rt = r.child(st, "solver.static", "rotation_tangent", false)) {
-      try {
-        s.solver.static_rotation_tangent = rt.as<bool>();
-      } catch (const YAML::Exception&) {
-        r.fail("solver.static.rotation_tangent", "must be true or false");
-      }
-    }
+    if (auto rt = r.child(st, "solver.static", "rotation_tangent", false))
+      s.solver.static_rotation_tangent = r.boolean(rt, "solver.static.rotation_tangent");
     if (st["tolerance"]) s.solver.static_tolerance = r.positive(st, "solver.static", "tolerance");
     if (auto it = r.child(st, "solver.static", "max_iterations", false)) {
       const long long v = r.integer(it, "solver.static.max_iterations");
@@ -87,13 +82,7 @@ void readSolver(const SceneReader& r, const YAML::Node& n, Scene& s) {
     readInt("refresh_iterations", 0, L.refresh_iterations);
     readInt("refactor_every", 0, L.refactor_every);
     readInt("async_lag", 0, L.async_lag);
-    if (auto v = r.child(li, p, "async", false)) {
-      try {
-        L.async = v.as<bool>();
-      } catch (const YAML::Exception&) {
-        r.fail(p + ".async", "must be true or false");
-      }
-    }
+    if (auto v = r.child(li, p, "async", false)) L.async = r.boolean(v, p + ".async");
     if (auto o = r.child(li, p, "ordering", false)) {
       const std::string v = r.string(o, p + ".ordering");
       if (v == "auto") L.ordering = Ordering::Auto;
@@ -550,13 +539,8 @@ void readBrainShift(const SceneReader& r, const YAML::Node& n, Scene& s) {
     const std::string q = p + ".skull";
     r.checkKeys(sk, q, {"gap", "surface", "scale", "transform", "enabled", "support"});
     for (const char* key : {"enabled", "support"})
-      if (auto v = r.child(sk, q, key, false)) {
-        try {
-          (std::string(key) == "enabled" ? b.skull_contact : b.skull_support) = v.as<bool>();
-        } catch (const YAML::Exception&) {
-          r.fail(q + "." + key, "must be true or false");
-        }
-      }
+      if (auto v = r.child(sk, q, key, false))
+        (std::string(key) == "enabled" ? b.skull_contact : b.skull_support) = r.boolean(v, q + "." + key);
     if (sk["gap"] && sk["surface"]) r.fail(q, "give either 'gap' or 'surface', not both");
     if (sk["gap"]) {
       b.gap = r.number(sk["gap"], q + ".gap");
@@ -567,11 +551,7 @@ void readBrainShift(const SceneReader& r, const YAML::Node& n, Scene& s) {
   if (n["target_shift"]) b.target_shift = r.positive(n, p, "target_shift");
   if (auto v = r.child(n, p, "target", false)) b.target = r.string(v, p + ".target");
   if (auto v = r.child(n, p, "replan", false)) {
-    try {
-      b.replan = v.as<bool>();
-    } catch (const YAML::Exception&) {
-      r.fail(p + ".replan", "must be true or false");
-    }
+    b.replan = r.boolean(v, p + ".replan");
     if (b.replan && s.needles.empty()) r.fail(p + ".replan", "re-aims the needles: the scene has none");
   }
   if (b.target_shift || !b.target.empty() || b.replan) {
