@@ -13,6 +13,7 @@ struct StepStats {
   double solve_ms = 0;     // CG iterations (or the direct solve)
   int linear_iterations = 0;
   int factorizations = 0;        // on the stepping thread
+  int stale_fallbacks = 0;       // CG on a stale factor ran out of its budget (then refactorised)
   int async_factorizations = 0;  // background refreshes swapped in this step
   int factor_waits = 0;          // ... of which the step had to wait for
   double factor_wait_ms = 0;     // time waited (part of solve_ms)
@@ -39,6 +40,7 @@ struct StepStats {
     solve_ms += s.solve_ms;
     linear_iterations += s.linear_iterations;
     factorizations += s.factorizations;
+    stale_fallbacks += s.stale_fallbacks;
     async_factorizations += s.async_factorizations;
     factor_waits += s.factor_waits;
     factor_wait_ms += s.factor_wait_ms;

@@ -3,6 +3,7 @@
 #include <cholmod.h>
 
 #include <cassert>
+#include <mutex>
 #include <stdexcept>
 
 namespace needle_sim {
@@ -29,6 +30,14 @@ cholmod_sparse viewUpper(const SparseMatrix& A) {
   return s;
 }
 
+// METIS keeps its random generator's state in globals (GKlib) and reseeds it at each call:
+// orderings made on two threads at once interleave their draws and differ from run to run.
+// One analysis at a time keeps every ordering reproducible.
+std::mutex& analysisMutex() {
+  static std::mutex m;
+  return m;
+}
+
 }  // namespace
 
 CholmodSolver::CholmodSolver(Ordering ordering) : ordering_(ordering) {
@@ -42,10 +51,9 @@ CholmodSolver::CholmodSolver(Ordering ordering) : ordering_(ordering) {
   common_->final_ll = 1;
   switch (ordering) {
     case Ordering::Auto:
-      // CHOLMOD's default: AMD, then METIS if AMD's fill is poor. (METIS would give the DBS
-      // mesh a 19 % smaller factor, 627 k nonzeros against 774 k, but its orderings made on a
-      // background build differed between runs, and a run must be reproducible:
-      // doc/benchmarks.md, "Bounded step time".)
+      // CHOLMOD's default: AMD, then METIS if AMD's fill is poor. (METIS gives the DBS mesh
+      // a 19 % smaller factor, 627 k nonzeros against 774 k, but the DBS steps only 5-10 %
+      // faster: doc/benchmarks.md, "Bounded step time".)
       break;
     case Ordering::Amd:
       common_->nmethods = 1;
@@ -86,7 +94,10 @@ void CholmodSolver::analyze(const SparseMatrix& upper) {
   if (factor_) cholmod_free_factor(&factor_, common_);
   factored_ = false;
   cholmod_sparse A = viewUpper(upper);
-  factor_ = cholmod_analyze(&A, common_);
+  {
+    std::lock_guard<std::mutex> lock(analysisMutex());
+    factor_ = cholmod_analyze(&A, common_);
+  }
   if (!factor_) throw std::runtime_error("CHOLMOD analysis failed (status " + std::to_string(common_->status) + ")");
   n_ = static_cast<int>(upper.rows());
   // The analysis's counts for the chosen ordering (kept: a copy's common has none).

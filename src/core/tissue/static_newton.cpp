@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdio>
 #include <stdexcept>
+#include <unordered_map>
 
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/core/stopwatch.hpp"
@@ -17,6 +18,25 @@ std::string fmtSci(double v) {
   char b[32];
   std::snprintf(b, sizeof b, "%.3e", v);
   return b;
+}
+
+// Number of elements whose blocks (summed) differ between a and b beyond round-off.
+int changedBlocks(const ElementBlocks& a, const ElementBlocks& b) {
+  std::unordered_map<int, std::pair<hex8::Mat24, hex8::Mat24>> sum;
+  auto add = [&](const ElementBlocks& blocks, bool first) {
+    for (size_t i = 0; i < blocks.element.size(); ++i) {
+      auto [it, fresh] = sum.try_emplace(blocks.element[i], hex8::Mat24::Zero(), hex8::Mat24::Zero());
+      (first ? it->second.first : it->second.second) += blocks.K[i];
+    }
+  };
+  add(a, true);
+  add(b, false);
+  int n = 0;
+  for (const auto& [e, ab] : sum) {
+    const double scale = std::max(ab.first.cwiseAbs().maxCoeff(), ab.second.cwiseAbs().maxCoeff());
+    n += (ab.first - ab.second).cwiseAbs().maxCoeff() > 1e-12 * scale;
+  }
+  return n;
 }
 
 // Restores the solver's persistent extra stiffness (the support) and drops its factor when
@@ -107,6 +127,7 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     dofs_.gather(*control->unit, unit_free);
     w_free.setZero(unit_free.size());
   }
+  ElementBlocks factor_blocks;  // the extra blocks in the factor (none before the first)
   VecX x_trial, r_trial;
   double rn = 0, gw = 1;
   const double lin_tol = solver_->settings().tolerance;
@@ -153,9 +174,15 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     // The last correction's CG ran out of its budget on the stale factor (the contact set or
     // the load moved the tangent far): this one's tangent has moved as far, so refactorise
     // at once instead of paying the budget again first.
-    if (refactor_next) solver_->invalidate();
+    // The extra terms' blocks changed since the factor was made (contacts switched on or
+    // off: each a stiff change that costs CG an iteration or more on the old factor): when
+    // more changed than the iterations that make a factor stale, refactorise at once rather
+    // than pay CG's budget first.
+    if (refactor_next || (extra && changedBlocks(factor_blocks, blocks) > solver_->settings().refresh_iterations))
+      solver_->invalidate();
     const LinearSolveStats ls = solver_->solve(mass_free_, 0.0, 1.0, r, dx_free, eta);
     refactor_next = ls.budget_exhausted;
+    if (ls.refactored && extra) factor_blocks = blocks;
     accumulate(st, ls);
     double ds = 0;
     if (control) {

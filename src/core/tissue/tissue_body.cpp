@@ -66,6 +66,7 @@ void TissueBody::accumulate(StepStats& s, const LinearSolveStats& l) const {
   s.solve_ms += l.solve_ms;
   s.linear_iterations += l.iterations;
   s.factorizations += l.refactored ? 1 : 0;
+  s.stale_fallbacks += l.budget_exhausted ? 1 : 0;
   s.async_factorizations += l.async_swapped ? 1 : 0;
   s.factor_waits += l.async_waited ? 1 : 0;
   s.factor_wait_ms += l.async_wait_ms;
