@@ -634,11 +634,13 @@ void Simulation::startPass() {
   pp->build =
       std::async(std::launch::async,
                  [this, estimator, adaptation, reference, h, shift, load_scale, decided = std::move(decided),
+                  retired = std::move(retired_tissue_),
                   x = VecX(tissue_->positions()), v = VecX(tissue_->velocities()),
                   guesses = tissue_->model().rotationGuesses(), points = std::move(points)]() mutable
                  -> std::shared_ptr<PreparedTissue> {
                    lowerThisThreadPriority();
                    nameThisThread("ns_adapt");
+                   retired.reset();  // here, not on the stepping thread
                    HexMesh mesh;
                    HangingNodes hanging;
                    VecX xt, vt;
@@ -725,6 +727,7 @@ void Simulation::finishRebuild() {
   if (reference_.size()) reference_ = adaptation_->transfer(reference_);
   if (shifted_.size()) shifted_ = adaptation_->transfer(shifted_);
   forgetEstimates();
+  retired_tissue_ = std::move(tissue_);  // freed on the next pass's thread (startPass)
   tissue_ = std::move(p->tissue);
   tissue_->setState(x, v);
   if (immersed_) organ_ = std::move(p->organ);
