@@ -22,6 +22,14 @@ std::string fmtSci(double v) {
 
 // Number of elements whose blocks (summed) differ between a and b beyond round-off.
 int changedBlocks(const ElementBlocks& a, const ElementBlocks& b) {
+  auto differ = [](const hex8::Mat24& p, const hex8::Mat24& q) {
+    return (p - q).cwiseAbs().maxCoeff() > 1e-12 * std::max(p.cwiseAbs().maxCoeff(), q.cwiseAbs().maxCoeff());
+  };
+  if (a.element == b.element) {  // the same elements in the same order (an unchanged contact set): no map
+    int n = 0;
+    for (size_t i = 0; i < a.K.size(); ++i) n += differ(a.K[i], b.K[i]);
+    return n;
+  }
   std::unordered_map<int, std::pair<hex8::Mat24, hex8::Mat24>> sum;
   auto add = [&](const ElementBlocks& blocks, bool first) {
     for (size_t i = 0; i < blocks.element.size(); ++i) {
@@ -32,10 +40,7 @@ int changedBlocks(const ElementBlocks& a, const ElementBlocks& b) {
   add(a, true);
   add(b, false);
   int n = 0;
-  for (const auto& [e, ab] : sum) {
-    const double scale = std::max(ab.first.cwiseAbs().maxCoeff(), ab.second.cwiseAbs().maxCoeff());
-    n += (ab.first - ab.second).cwiseAbs().maxCoeff() > 1e-12 * scale;
-  }
+  for (const auto& [e, ab] : sum) n += differ(ab.first, ab.second);
   return n;
 }
 
