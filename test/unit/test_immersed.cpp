@@ -502,7 +502,6 @@ TEST(StaticNewton, ContactsSwitchingOnRefactoriseBeforeRunningConjugateGradients
   TissueBody body(mesh, sc.tissue, sc.solver);
   body.addExternalForce(unit);
   body.solveStatic(contact, 1e-8, 50);
-  // The tip pushed 1.5 gaps down: the floor takes a third of the bottom face.
   // The free end's top edge pushed down twice the gap: the floor takes over half the bottom.
   const double want = 2.0 * gap;
   TissueBody::LoadControl lc;

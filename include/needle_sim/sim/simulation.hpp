@@ -234,7 +234,8 @@ class Simulation {
   double dt_;
   std::unique_ptr<TissueBody> tissue_;
   // The body a deferred switch replaced: freeing it (its factor, matrices and model) took
-  // 0.1-0.7 ms, most of a switch step on the phantom; the next background pass frees it.
+  // 0.1-0.7 ms, most of a switch step on the phantom; the next background pass or build
+  // frees it (startPass, startRebuild).
   std::unique_ptr<TissueBody> retired_tissue_;
   std::vector<std::unique_ptr<NeedleBody>> needles_;
   std::unique_ptr<NeedleTissueInteraction> interaction_;

@@ -562,9 +562,11 @@ void Simulation::startRebuild() {
   tissue_->holdFactorRefresh(true);  // the build gets the second core (the DBS switch waited for it)
   pending->job = std::async(std::launch::async,
                             [scene, h, shift, load_scale, mesh = std::move(mesh), hanging = std::move(hanging),
-                             x = std::move(x), v = std::move(v), points = std::move(points)]() mutable {
+                             x = std::move(x), v = std::move(v), points = std::move(points),
+                             retired = std::move(retired_tissue_)]() mutable {
                               lowerThisThreadPriority();
                               nameThisThread("ns_rebuild");
+                              retired.reset();  // the body the last switch replaced: freed here
                               return prepareTissue(*scene, h, shift, load_scale, std::move(mesh), std::move(hanging),
                                                    x, v, points);
                             })
@@ -727,7 +729,7 @@ void Simulation::finishRebuild() {
   if (reference_.size()) reference_ = adaptation_->transfer(reference_);
   if (shifted_.size()) shifted_ = adaptation_->transfer(shifted_);
   forgetEstimates();
-  retired_tissue_ = std::move(tissue_);  // freed on the next pass's thread (startPass)
+  retired_tissue_ = std::move(tissue_);  // freed on the next pass's or build's thread
   tissue_ = std::move(p->tissue);
   tissue_->setState(x, v);
   if (immersed_) organ_ = std::move(p->organ);

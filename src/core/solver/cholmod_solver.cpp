@@ -32,7 +32,8 @@ cholmod_sparse viewUpper(const SparseMatrix& A) {
 
 // METIS keeps its random generator's state in globals (GKlib) and reseeds it at each call:
 // orderings made on two threads at once interleave their draws and differ from run to run.
-// One analysis at a time keeps every ordering reproducible.
+// One analysis that may order with METIS (metis, or auto falling back to it) at a time keeps
+// every ordering reproducible.
 std::mutex& analysisMutex() {
   static std::mutex m;
   return m;
@@ -94,7 +95,9 @@ void CholmodSolver::analyze(const SparseMatrix& upper) {
   if (factor_) cholmod_free_factor(&factor_, common_);
   factored_ = false;
   cholmod_sparse A = viewUpper(upper);
-  {
+  if (ordering_ == Ordering::Amd) {
+    factor_ = cholmod_analyze(&A, common_);  // AMD keeps no global state: no need to wait
+  } else {
     std::lock_guard<std::mutex> lock(analysisMutex());
     factor_ = cholmod_analyze(&A, common_);
   }

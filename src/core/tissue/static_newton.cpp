@@ -193,7 +193,9 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     if (control) {
       // w = K^-1 unit (warm-started from the last one: K changes little between steps), then
       // the scale change that satisfies the linearised constraint.
-      accumulate(st, solver_->solve(mass_free_, 0.0, 1.0, unit_free, w_free, std::max(std::min(eta, 1e-3), lin_tol)));
+      const LinearSolveStats lw = solver_->solve(mass_free_, 0.0, 1.0, unit_free, w_free, std::max(std::min(eta, 1e-3), lin_tol));
+      if (lw.refactored && extra) factor_blocks = blocks;
+      accumulate(st, lw);
       gw = grad.dot(w_free);
       if (!(gw > 0)) throw NumericalError(-1, "static solve: the controlled displacement does not grow with the load");
       ds = -(c + grad.dot(dx_free)) / gw;
