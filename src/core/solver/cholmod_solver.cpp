@@ -95,12 +95,10 @@ void CholmodSolver::analyze(const SparseMatrix& upper) {
   if (factor_) cholmod_free_factor(&factor_, common_);
   factored_ = false;
   cholmod_sparse A = viewUpper(upper);
-  if (ordering_ == Ordering::Amd) {
-    factor_ = cholmod_analyze(&A, common_);  // AMD keeps no global state: no need to wait
-  } else {
-    std::lock_guard<std::mutex> lock(analysisMutex());
-    factor_ = cholmod_analyze(&A, common_);
-  }
+  std::unique_lock<std::mutex> lock(analysisMutex(), std::defer_lock);
+  if (ordering_ != Ordering::Amd) lock.lock();  // AMD keeps no global state: no need to wait
+  factor_ = cholmod_analyze(&A, common_);
+  if (lock.owns_lock()) lock.unlock();
   if (!factor_) throw std::runtime_error("CHOLMOD analysis failed (status " + std::to_string(common_->status) + ")");
   n_ = static_cast<int>(upper.rows());
   // The analysis's counts for the chosen ordering (kept: a copy's common has none).

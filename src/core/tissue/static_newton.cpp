@@ -185,17 +185,19 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     // than pay CG's budget first.
     if (refactor_next || (extra && changedBlocks(factor_blocks, blocks) > solver_->settings().refresh_iterations))
       solver_->invalidate();
+    // Counts a solve and, when it refactorised, records the blocks its factor holds.
+    auto account = [&](const LinearSolveStats& l) {
+      if (l.refactored && extra) factor_blocks = blocks;
+      accumulate(st, l);
+    };
     const LinearSolveStats ls = solver_->solve(mass_free_, 0.0, 1.0, r, dx_free, eta);
     refactor_next = ls.budget_exhausted;
-    if (ls.refactored && extra) factor_blocks = blocks;
-    accumulate(st, ls);
+    account(ls);
     double ds = 0;
     if (control) {
       // w = K^-1 unit (warm-started from the last one: K changes little between steps), then
       // the scale change that satisfies the linearised constraint.
-      const LinearSolveStats lw = solver_->solve(mass_free_, 0.0, 1.0, unit_free, w_free, std::max(std::min(eta, 1e-3), lin_tol));
-      if (lw.refactored && extra) factor_blocks = blocks;
-      accumulate(st, lw);
+      account(solver_->solve(mass_free_, 0.0, 1.0, unit_free, w_free, std::max(std::min(eta, 1e-3), lin_tol)));
       gw = grad.dot(w_free);
       if (!(gw > 0)) throw NumericalError(-1, "static solve: the controlled displacement does not grow with the load");
       ds = -(c + grad.dot(dx_free)) / gw;
