@@ -115,7 +115,8 @@ def run_sample(tool, scene, args, run_id, target, keep_dir=None, timeout=None):
         parent = os.path.dirname(keep_dir)
         os.makedirs(parent, exist_ok=True)
     private = tempfile.mkdtemp(prefix=f".run{run_id}.", dir=parent)
-    cmd = [tool, "run", scene, "--out", private, "--quiet"] + list(args)
+    # One BLAS thread while the scene loads too: the ensemble runs a sample per core.
+    cmd = [tool, "--setup-threads", "1", "run", scene, "--out", private, "--quiet"] + list(args)
     result = {"worker": f"{socket.gethostname()}:{os.getpid()}"}
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, preexec_fn=_die_with_parent())

@@ -108,6 +108,9 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   if (!(p.output_period >= 0) || !(p.output_period <= 1.0)) throw InputError("", "~output_period", "must be in [0, 1] s");
   pnh.param("blas_threads", p.blas_threads, p.blas_threads);
   if (p.blas_threads < 1) throw InputError("", "~blas_threads", "must be >= 1");
+  pnh.param("setup_threads", p.setup_threads, p.setup_threads);
+  if (p.setup_threads < 0 || p.setup_threads > 64)
+    throw InputError("", "~setup_threads", "must be in [0, 64] (0: every core), got " + std::to_string(p.setup_threads));
   pnh.param("realtime_priority", p.realtime_priority, p.realtime_priority);
   if (p.realtime_priority < 0 || p.realtime_priority > 99)
     throw InputError("", "~realtime_priority", "must be in [0, 99] (0: the default scheduler), got " + std::to_string(p.realtime_priority));

@@ -33,6 +33,9 @@ struct NodeParameters {
   double display_range_min = 1e-7;  // [m] the adaptive range never goes below this
   double output_period = 0.001;
   int blas_threads = 1;
+  // ~setup_threads: BLAS threads while the scene loads (the brain-shift pre-step, before any
+  // step; Simulation::setSetupThreads); 0: every core.
+  int setup_threads = 0;
   // ~realtime_priority: SCHED_FIFO priority of the stepping thread (1-99; 0: the default
   // scheduler). A control loop's simulator, like the loop itself, needs it to keep its
   // deadlines on a loaded machine; without the privilege the node warns and runs on.

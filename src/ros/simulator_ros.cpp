@@ -15,6 +15,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <thread>
 
 #include "conversions.hpp"
 #include "display_outputs.hpp"
@@ -33,6 +34,9 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   params_ = std::make_unique<NodeParameters>(readParameters(pnh_));
   const NodeParameters& P = *params_;
   setBlasThreads(P.blas_threads);  // OpenBLAS threads spin between the small per-step solves
+  // Loading the scene comes before any step: its large factorisations may use every core.
+  Simulation::setSetupThreads(P.setup_threads > 0 ? P.setup_threads
+                                                  : static_cast<int>(std::clamp(std::thread::hardware_concurrency(), 1u, 8u)));
   scene_ = loadScene(P.scene_file, P.overrides);
   // A real-time loop takes a refreshed factor as soon as it is ready: no step waits for it
   // (doc/ros_api.md, ~deterministic_factor; the results then vary within the CG tolerance).
@@ -49,6 +53,9 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   tf_missing_.assign(scene_.needles.size(), 0);
   schedule_ = RealtimeSchedule(scene_.dt);
   load();
+  // A later load (~reset) may come while prediction and error threads run BLAS: it keeps
+  // the steps' thread count (changing it under running BLAS calls is not safe).
+  Simulation::setSetupThreads(0);
 
   out_ = std::make_unique<OutputQueue>(P.output_period);
   display_ = std::make_unique<DisplayOutputs>(pnh_, P, scene_, *out_);

@@ -15,12 +15,14 @@
 // 3 numerical failure (NaN/Inf, divergence, solver failure; reported with the step).
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
+#include <algorithm>
 #include <fstream>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
+#include <thread>
 #include <cerrno>
 #include <cstring>
 #include <unistd.h>
@@ -256,6 +258,13 @@ int main(int argc, char** argv) {
                  "factorisations)")
       ->capture_default_str()
       ->check(CLI::Range(1, 64));
+  // Loading a scene (the brain shift) runs before any step: every core by default.
+  int setup_threads = static_cast<int>(std::clamp(std::thread::hardware_concurrency(), 1u, 8u));
+  app.add_option("--setup-threads", setup_threads,
+                 "BLAS threads while a scene loads (the brain-shift pre-step and the first factor, before "
+                 "any step); the steps then run with --blas-threads")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 64));
 
   std::string scene_path, out_dir;
   std::vector<std::string> sets;
@@ -382,6 +391,7 @@ int main(int argc, char** argv) {
     auto args = withoutRosArgs(argc, argv);
     app.parse(args);
     setBlasThreads(blas_threads);
+    Simulation::setSetupThreads(setup_threads);
     scene_path = resolveScene(scene_path);
     bench_opts.scene = resolveScene(bench_opts.scene);
     pred.scene = resolveScene(pred.scene);

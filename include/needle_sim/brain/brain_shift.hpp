@@ -51,6 +51,11 @@ struct BrainShiftResult {
   double max_penetration = 0;       // largest g_v > 0 at the end [m]
   double skull_force = 0;           // |sum of skull reactions| [N]
   double ms = 0;
+  // The coarse start (brain_shift.coarse_start), when it ran: its grid's DOFs, its share of
+  // the counts and the time above, and the load scale it handed on (0 DOFs: none).
+  int coarse_dofs = 0;
+  int coarse_newton_iterations = 0, coarse_factorizations = 0;
+  double coarse_ms = 0, coarse_load_scale = 0;
 };
 
 class BrainShift {

@@ -27,6 +27,11 @@ struct BrainShiftSettings {
   // the target's shifted position through its entry point (needle/trajectory_replan.hpp).
   bool replan = false;
   int load_steps = 4;
+  // On a uniformly refined immersed grid (tissue.grid.refine >= 1, no adaptivity) with a
+  // target_shift: solve the shift roughly on the grid one level coarser first, and start the
+  // grid's own solve from its state and load scale (nested iteration; doc/method.md "Brain
+  // shift").
+  bool coarse_start = true;
   double tolerance = 1e-6;              // relative Newton residual per load step
 };
 

@@ -22,6 +22,30 @@ inline bool setBlasThreads(int n) {
   return true;
 }
 
+// The BLAS's thread count now (0 when it has no thread control).
+inline int blasThreads() {
+  using Fn = int (*)();
+  auto f = reinterpret_cast<Fn>(dlsym(RTLD_DEFAULT, "openblas_get_num_threads"));
+  return f ? f() : 0;
+}
+
+// n BLAS threads (n > 0) while alive, then the count there was before; n <= 0: no change.
+class ScopedBlasThreads {
+ public:
+  explicit ScopedBlasThreads(int n) : before_(n > 0 ? blasThreads() : 0) {
+    if (before_ > 0 && n != before_) setBlasThreads(n);
+    else before_ = 0;
+  }
+  ~ScopedBlasThreads() {
+    if (before_ > 0) setBlasThreads(before_);
+  }
+  ScopedBlasThreads(const ScopedBlasThreads&) = delete;
+  ScopedBlasThreads& operator=(const ScopedBlasThreads&) = delete;
+
+ private:
+  int before_;
+};
+
 // Debian's CHOLMOD runs small OpenMP loops inside the supernodal factorisation with a
 // compiled-in 4 threads that omp_set_num_threads cannot lower; on two cores their futex
 // hand-offs doubled the brain-shift pre-step's time. Only OMP_THREAD_LIMIT caps them, and

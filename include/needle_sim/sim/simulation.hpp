@@ -38,6 +38,12 @@ class Simulation {
   };
   // Throws InputError for scene content that only shows once the mesh exists (a probe
   // outside the tissue, a region selecting no node).
+  // BLAS threads while a scene loads (the brain-shift pre-step, the first step's factor),
+  // process-wide: a one-off before any step, whose large factorisations gain from every
+  // core; the steps then run with the count set before (setBlasThreads). 0 (the default): no
+  // change. The tool and the node set it from --setup-threads and ~setup_threads.
+  static void setSetupThreads(int n);
+  static int setupThreads();
   explicit Simulation(const Scene& scene) : Simulation(scene, Options{}) {}
   Simulation(const Scene& scene, const Options& options);
   // A deep copy of the whole state (bodies and their factors, constraints and insertion
@@ -203,6 +209,10 @@ class Simulation {
   long rebuildLagSteps() const;
   // The brain-shift pre-step, with its solve/adapt passes on an adaptive mesh.
   void preStep();
+  // brain_shift.coarse_start: solves the shift roughly on the grid one level coarser and
+  // puts its state, interpolated, on the tissue; returns the pass's counts and its load scale
+  // (coarse_dofs 0 when the scene does not call for it).
+  BrainShiftResult coarseShiftStart(int target);
   // Re-aims every needle at the brain-shift target's shifted position (brain_shift.replan).
   void replanNeedles();
   static constexpr int kMaxShiftPasses = 6;

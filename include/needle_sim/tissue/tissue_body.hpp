@@ -13,6 +13,7 @@
 #include <algorithm>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <unordered_map>
 #include <vector>
 
@@ -78,6 +79,12 @@ class TissueBody {
   using LoadControl = needle_sim::LoadControl;
   StepStats solveStatic(const ExtraForce& extra, double tolerance, int max_iterations,
                         LoadControl* control = nullptr);
+  // Static solves that follow each other on nearly the same tangent (the brain shift's load
+  // steps and multiplier updates) keep their factor from one call to the next while on; the
+  // next call refactorises only when its extra blocks moved away from those in the factor
+  // (doc/method.md "Static solves"). Turning it off drops the factor (it holds the extra
+  // blocks, which later steps do not have).
+  void keepStaticFactor(bool on);
 
   // The dual problems of a goal-oriented estimate: K Z = G (G: loads, 3n per column) with
   // the current tangent and the Dirichlet conditions, by CG on the body's factor (that of the
@@ -130,6 +137,10 @@ class TissueBody {
   VecX free_guess_, free_guess2_;  // the last two free motions: CG's initial guess for the next
   double step_h_ = 0;              // the time step the factor and the columns are for (0: none yet)
   ElementBlocks support_;
+  // keepStaticFactor: whether on, and the extra blocks in the factor the last static solve
+  // left (nullopt: none kept).
+  bool keep_static_factor_ = false;
+  std::optional<ElementBlocks> static_factor_blocks_;
   mutable ComplianceCache columns_;
 };
 

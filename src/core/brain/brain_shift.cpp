@@ -74,6 +74,13 @@ BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target
   if (with_contact)
     extra = [this, &body](const VecX& x, VecX& f, ElementBlocks& K) { skull_->addForces(body.mesh(), x, f, K); };
 
+  // The load steps and multiplier updates below solve on nearly the same tangent: each starts
+  // from the factor the last one left (and refactorises when the contact set moved).
+  struct KeepFactor {
+    TissueBody& b;
+    explicit KeepFactor(TissueBody& body) : b(body) { b.keepStaticFactor(true); }
+    ~KeepFactor() { b.keepStaticFactor(false); }
+  } keep_factor(body);
   double applied = 0;  // scale of the load now in the body
   const double tol = rough ? std::max(settings_.tolerance, kRoughTolerance) : settings_.tolerance;
   // Newton solves with multiplier updates until the penetration is within tolerance.

@@ -321,6 +321,13 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
     });
   }
   const size_t threads = static_cast<size_t>(std::max(1, s.threads));
+  // Scenes load on several threads at once here: none may change the BLAS's thread count
+  // (Simulation::setSetupThreads) under another's running calls.
+  struct NoSetupThreads {
+    const int was = Simulation::setupThreads();
+    NoSetupThreads() { Simulation::setSetupThreads(0); }
+    ~NoSetupThreads() { Simulation::setSetupThreads(was); }
+  } no_setup_threads;
   for (size_t k = 0; k < jobs.size(); k += threads) {
     std::vector<std::future<void>> f;
     for (size_t j = k; j < std::min(jobs.size(), k + threads); ++j) f.push_back(std::async(std::launch::async, jobs[j]));

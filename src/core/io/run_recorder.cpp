@@ -436,6 +436,12 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                         {"passes", bs.passes},
                         {"dofs", bs.dofs},
                         {"ms", bs.ms}};
+    if (bs.coarse_dofs > 0)  // brain_shift.coarse_start: its share of the figures above
+      j["brain_shift"]["coarse_start"] = {{"dofs", bs.coarse_dofs},
+                                          {"newton_iterations", bs.coarse_newton_iterations},
+                                          {"factorizations", bs.coarse_factorizations},
+                                          {"load_scale", bs.coarse_load_scale},
+                                          {"ms", bs.coarse_ms}};
     if (!bs.target.empty()) {
       j["brain_shift"]["target"] = bs.target;
       j["brain_shift"]["target_displacement"] = arr(bs.target_displacement);

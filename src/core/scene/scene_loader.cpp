@@ -521,7 +521,8 @@ void readTargets(const SceneReader& r, const YAML::Node& n, Scene& s) {
 
 void readBrainShift(const SceneReader& r, const YAML::Node& n, Scene& s) {
   const std::string p = "brain_shift";
-  r.checkKeys(n, p, {"gravity", "csf_level", "density", "skull", "target_shift", "target", "replan", "load_steps", "tolerance"});
+  r.checkKeys(n, p, {"gravity", "csf_level", "density", "skull", "target_shift", "target", "replan", "load_steps", "tolerance",
+                  "coarse_start"});
   BrainShiftSettings b;
   if (auto v = r.child(n, p, "gravity", false)) b.gravity = r.vec3(v, p + ".gravity");
   if (!(b.gravity.norm() > 0)) r.fail(p + ".gravity", "must be a non-zero vector");
@@ -567,6 +568,7 @@ void readBrainShift(const SceneReader& r, const YAML::Node& n, Scene& s) {
     if (k < 1 || k > 1000) r.fail(p + ".load_steps", "must be in [1, 1000]");
     b.load_steps = static_cast<int>(k);
   }
+  if (auto v = r.child(n, p, "coarse_start", false)) b.coarse_start = r.boolean(v, p + ".coarse_start");
   if (n["tolerance"]) {
     b.tolerance = r.positive(n, p, "tolerance");
     if (b.tolerance >= 1) r.fail(p + ".tolerance", "must be < 1");

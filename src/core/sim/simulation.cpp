@@ -1,5 +1,7 @@
 #include "needle_sim/sim/simulation.hpp"
 
+#include "needle_sim/core/blas_threads.hpp"
+
 #include <algorithm>
 #include <atomic>
 #include <thread>
@@ -10,6 +12,7 @@
 #include <sstream>
 
 #include "needle_sim/core/background_priority.hpp"
+#include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/core/stopwatch.hpp"
 
@@ -81,6 +84,12 @@ Simulation::Simulation(const Scene& scene, const Options& options) : scene_(scen
     for (auto& n : needles_) nd.push_back(n.get());
     interaction_ = std::make_unique<NeedleTissueInteraction>(*scene.interaction, *tissue_, nd, organ_.get());
   }
+  // The brain shift's static solves (and the first step's factor after them) may use more
+  // BLAS threads. They pay off only for large factors: on the adaptive DBS mesh's first grid
+  // (3,000 DOFs) two threads gained nothing and were sometimes slower (2026-12-04,
+  // doc/benchmarks.md). A scene without the shift leaves the count alone.
+  constexpr int kSetupThreadsMinDofs = 10000;
+  ScopedBlasThreads setup_threads(scene.brain_shift && tissue_->mesh().numDofs() >= kSetupThreadsMinDofs ? setupThreads() : 0);
   if (scene.brain_shift) preStep();
   if (scene.brain_shift && scene.brain_shift->replan) replanNeedles();
   for (int i = 0; i < numTargets(); ++i) target_start_.push_back(targetPosition(i));
@@ -93,7 +102,11 @@ Simulation::Simulation(const Scene& scene, const Options& options) : scene_(scen
 
 namespace {
 std::atomic<double> g_rebuild_delay_ms{0.0};
+std::atomic<int> g_setup_threads{0};
 }  // namespace
+
+void Simulation::setSetupThreads(int n) { g_setup_threads = std::max(n, 0); }
+int Simulation::setupThreads() { return g_setup_threads; }
 
 void Simulation::setRebuildDelayForTesting(double ms) { g_rebuild_delay_ms = ms; }
 
@@ -222,13 +235,18 @@ void Simulation::preStep() {
   // the last digit); the last one, on the final mesh, solves to the tolerance and scales the
   // load for target_shift, starting from the rough pass's state.
   bool rough = adaptation_ != nullptr;
+  // A uniformly refined grid starts from the shift solved on the grid one level coarser:
+  // the controlled solve there finds the load scale and most of the skull's contact set at a
+  // fraction of the cost (nested iteration; doc/method.md "Brain shift").
+  const BrainShiftResult coarse = adaptation_ ? BrainShiftResult{} : coarseShiftStart(t);
+  if (coarse.coarse_dofs > 0) scale = coarse.coarse_load_scale;
   for (int pass = 1;; ++pass) {
     // The coarse mesh's first pass only shows where to refine: its load scale (which the
     // refined meshes change severalfold, the clamps holding more nodes) is not solved for.
     const BrainShiftResult r =
         shift_->apply(*tissue_, t >= 0 ? &targets_[t].point : nullptr, scale, rough, !(rough && pass == 1));
-    const int iterations = total.newton_iterations + r.newton_iterations;
-    const int factorizations = total.factorizations + r.factorizations;
+    const int iterations = total.newton_iterations + r.newton_iterations + (pass == 1 ? coarse.newton_iterations : 0);
+    const int factorizations = total.factorizations + r.factorizations + (pass == 1 ? coarse.factorizations : 0);
     const int solves = total.load_solves + r.load_solves, updates = total.multiplier_updates + r.multiplier_updates;
     const double fms = total.factor_ms + r.factor_ms, sms = total.solve_ms + r.solve_ms;
     total = r;
@@ -279,7 +297,56 @@ void Simulation::preStep() {
     forgetEstimates();
   }
   total.ms = msSince(t0);
+  total.coarse_dofs = coarse.coarse_dofs;
+  total.coarse_newton_iterations = coarse.newton_iterations;
+  total.coarse_factorizations = coarse.factorizations;
+  total.coarse_ms = coarse.ms;
+  total.coarse_load_scale = coarse.coarse_load_scale;
   shift_result_ = total;
+}
+
+BrainShiftResult Simulation::coarseShiftStart(int t) {
+  const BrainShiftSettings& settings = *scene_.brain_shift;
+  const ImmersedGridSettings& fine = scene_.tissue.geometry.grid;
+  if (!settings.coarse_start || !immersed_ || fine.refine < 1 || t < 0 || !settings.target_shift) return {};
+  const auto t0 = steadyNow();
+  ImmersedGridSettings g = fine;
+  --g.refine;  // the same origin and box: every node of this grid lies in a coarse cell
+  const ImmersedGrid grid(scene_.tissue.geometry.surface, g);
+  std::unique_ptr<TissueBody> coarse;
+  BrainShiftResult r;
+  try {
+    coarse = std::make_unique<TissueBody>(grid.mesh(), scene_.tissue, scene_.solver, scene_.file);
+    const EmbeddedSurface organ(scene_.tissue.geometry.surface, coarse->mesh());
+    BrainShift shift(settings, scene_.tissue, &organ);
+    const PointLocator locator(coarse->mesh());
+    EmbeddedPoint target;
+    const Vec3& rest = targets_[t].point.rest;
+    if (!locator.locate(rest, target) && !locator.locateNearest(rest, target)) return {};
+    // Rough (to 1e-3, penetrations to 1 % of the gap), the load scaled to the target shift.
+    r = shift.apply(*coarse, &target, 1.0, true, true);
+  } catch (const InputError&) {  // e.g. a clamp region selecting no node of the coarse grid
+    return {};
+  } catch (const NumericalError&) {  // a coarse grid that cannot carry the shift
+    return {};                       // (this grid then solves from rest, as without the start)
+  }
+  const TissueBody& body = *coarse;
+  const PointLocator locator(body.mesh());
+  auto embed = [&](const Vec3& p, EmbeddedPoint& ep) { return locator.locate(p, ep) || locator.locateNearest(p, ep); };
+  // Its displacements, interpolated at this grid's nodes (the clamped ones keep theirs).
+  const VecX u = body.displacements();
+  VecX x = tissue_->positions();
+  for (int i = 0; i < tissue_->mesh().numNodes(); ++i) {
+    EmbeddedPoint ep;
+    const Vec3 p = node3(x, i);
+    if (embed(p, ep)) node3(x, i) = p + ep.interpolate(body.mesh(), u);
+  }
+  tissue_->setState(x, VecX::Zero(x.size()));
+  checkState();
+  r.coarse_dofs = body.mesh().numDofs();
+  r.coarse_load_scale = r.load_scale;
+  r.ms = msSince(t0);
+  return r;
 }
 
 void Simulation::applySupport() { support(shift_.get(), *tissue_, organ_.get()); }

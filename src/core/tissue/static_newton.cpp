@@ -45,14 +45,16 @@ int changedBlocks(const ElementBlocks& a, const ElementBlocks& b) {
 }
 
 // Restores the solver's persistent extra stiffness (the support) and drops its factor when
-// a solve with temporary blocks ends.
+// a solve with temporary blocks ends (unless the body keeps it for the next static solve:
+// keep, set when the solve succeeded).
 struct Detach {
   SystemSolver& s;
   const ElementBlocks* base;
+  bool keep = false;
   ~Detach() {
     s.setNonsymmetricTerm(nullptr);
     s.setExtraStiffness(base);
-    s.invalidate();
+    if (!keep) s.invalidate();
   }
 };
 
@@ -65,6 +67,13 @@ struct SynchronousRefresh {
   ~SynchronousRefresh() { s.setAsync(was); }
 };
 }  // namespace
+
+void TissueBody::keepStaticFactor(bool on) {
+  keep_static_factor_ = on;
+  if (on) return;
+  if (static_factor_blocks_) solver_->invalidate();
+  static_factor_blocks_.reset();
+}
 
 StepStats TissueBody::solveStatic() {
   return solveStatic(ExtraForce{}, settings_.static_tolerance, settings_.static_max_iterations);
@@ -132,7 +141,10 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     dofs_.gather(*control->unit, unit_free);
     w_free.setZero(unit_free.size());
   }
-  ElementBlocks factor_blocks;  // the extra blocks in the factor (none before the first)
+  // The extra blocks in the factor: those the last static solve left when the body keeps its
+  // factor (keepStaticFactor), else none (the first solve refactorises as they differ).
+  ElementBlocks factor_blocks = static_factor_blocks_.value_or(ElementBlocks{});
+  static_factor_blocks_.reset();
   VecX x_trial, r_trial;
   double rn = 0, gw = 1;
   const double lin_tol = solver_->settings().tolerance;
@@ -163,6 +175,10 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     if (balanced && (!control || std::abs(c) <= control->tolerance)) {
       st.newton_iterations = it;
       v_.setZero();
+      if (keep_static_factor_) {
+        static_factor_blocks_ = std::move(factor_blocks);
+        detach.keep = true;
+      }
       return st;
     }
     if (it == max_iterations) break;

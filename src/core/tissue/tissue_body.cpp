@@ -29,6 +29,7 @@ TissueBody::TissueBody(const TissueBody& o)
   model_ = std::make_unique<CorotationalHexModel>(*o.model_, *mesh_);
   solver_ = std::make_unique<SystemSolver>(*o.solver_, *model_, dofs_);
   solver_->setExtraStiffness(supportOrNull());
+  if (o.static_factor_blocks_) solver_->invalidate();  // a kept static factor holds blocks the copy does not keep
 }
 
 TissueBody::TissueBody(HexMesh mesh, const TissueParameters& tissue, const SolverSettings& solver,
