@@ -274,6 +274,31 @@ TEST(BrainShift, CoarseStartGivesTheSameShiftWithFewerFineFactorisations) {
   EXPECT_LT(a.factorizations - a.coarse_factorizations, b.factorizations);
 }
 
+// The controlled steps' limit (SkullContact::stepLimit): a rigid translation d of the brain
+// changes vertex v's gap by n_v . d, so the first vertex to reach `depth` beyond the skull
+// fixes the fraction of the step; vertices already pressing are the tangent's business.
+TEST(BrainShift, StepLimitStopsTheFirstVertexThatWouldPressInAtTheDepth) {
+  Simulation sim(shiftScene("{gravity: [0, -9.81, 0], csf_level: {point: [0, 1.0, 0]}, skull: {gap: 0.002}}"));
+  const HexMesh& mesh = sim.tissue().mesh();
+  const EmbeddedSurface& organ = *sim.organSurface();
+  const double gap = 0.002, depth = 2e-4;
+  SkullContact skull(organ, nullptr, gap, 6000.0);
+  skull.setRest(mesh);
+  std::vector<Vec3> n;
+  std::vector<double> area;
+  organ.rest().vertexNormals(n, area);
+  const Vec3 d(0, -0.01, 0);  // 10 mm down: far past the 2 mm gap
+  double reach = 0;           // the largest n_v . d
+  for (const Vec3& nv : n) reach = std::max(reach, nv.dot(d));
+  ASSERT_GT(reach, gap + depth);
+  VecX dx(mesh.numDofs());
+  for (int i = 0; i < mesh.numNodes(); ++i) node3(dx, i) = d;
+  const VecX x = mesh.restPositions();
+  EXPECT_NEAR(skull.stepLimit(mesh, x, dx, depth, 0.05), (gap + depth) / reach, 1e-12);
+  EXPECT_EQ(skull.stepLimit(mesh, x, dx, depth, 0.5), 0.5);    // never below the minimum
+  EXPECT_EQ(skull.stepLimit(mesh, x, -0.01 * dx, depth, 0.05), 1.0);  // 0.1 mm: nothing reaches it
+}
+
 // A coarse grid that cannot carry the shift (on this 24 mm grid the brainstem's clamp holds
 // no node) leaves the start to the scene's grid, which solves from rest as without it.
 TEST(BrainShift, CoarseStartFallsBackWhenTheCoarseGridCannotCarryTheShift) {

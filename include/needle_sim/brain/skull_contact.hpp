@@ -37,6 +37,9 @@ class SkullContact {
   // Largest g_v, and the number of vertices whose force is on.
   double penetration(const HexMesh& mesh, const VecX& x, int& active) const;
   void updateMultipliers(const HexMesh& mesh, const VecX& x);
+  // The largest a in (0, 1] such that x + a dx presses no vertex that is off at x more than
+  // `depth` beyond the skull (at least min_step).
+  double stepLimit(const HexMesh& mesh, const VecX& x, const VecX& dx, double depth, double min_step) const;
 
   // Freezes the reactions at x: returns their nodal force (to be kept as a load) and
   // records the vertices in contact and their positions (the support's anchors).

@@ -77,8 +77,12 @@ class TissueBody {
   using ExtraForce = std::function<void(const VecX& x, VecX& f, ElementBlocks& K)>;
   // Newton with displacement control (load_control.hpp): the load scale is an unknown too.
   using LoadControl = needle_sim::LoadControl;
+  // limit (optional): the fraction a in (0, 1] of a Newton step (x + a dx, and the load
+  // scale + a ds under control) that the extra terms allow (skull contact: how far vertices
+  // that are off may press in at once).
+  using StepLimit = std::function<double(const VecX& x, const VecX& dx)>;
   StepStats solveStatic(const ExtraForce& extra, double tolerance, int max_iterations,
-                        LoadControl* control = nullptr);
+                        LoadControl* control = nullptr, const StepLimit& limit = {});
   // Static solves that follow each other on nearly the same tangent (the brain shift's load
   // steps and multiplier updates) keep their factor from one call to the next while on; the
   // next call refactorises only when its extra blocks moved away from those in the factor

@@ -105,6 +105,17 @@ double SkullContact::penetration(const HexMesh& mesh, const VecX& x, int& active
   return worst;
 }
 
+double SkullContact::stepLimit(const HexMesh& mesh, const VecX& x, const VecX& dx, double depth, double min_step) const {
+  double a = 1;
+  for (int v = 0; v < numVertices(); ++v) {
+    const double g0 = gap(v, mesh, x);
+    if (lambda_[v] + k_[v] * g0 > 0) continue;  // on: the tangent holds it
+    const double dg = normal_[v].dot(organ_->vertex(v).interpolate(mesh, dx));
+    if (g0 + dg > depth) a = std::min(a, (depth - g0) / dg);
+  }
+  return std::max(a, min_step);
+}
+
 void SkullContact::updateMultipliers(const HexMesh& mesh, const VecX& x) {
   for (int v = 0; v < numVertices(); ++v) lambda_[v] = std::max(0.0, lambda_[v] + k_[v] * gap(v, mesh, x));
 }

@@ -83,7 +83,8 @@ StepStats TissueBody::solveStatic() {
 // against an active set that cycles).
 constexpr int kFullControlledSteps = 20;
 
-StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_iterations, LoadControl* control) {
+StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_iterations, LoadControl* control,
+                                  const StepLimit& limit) {
   StepStats st;
   VecX r_full, r, dx_free, dx, unit_free, w_free, w, grad_full, grad;
   ElementBlocks blocks;
@@ -223,6 +224,12 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     }
     dofs_.scatter(dx_free, dx);
     t0 = steadyNow();
+    // The part of the step the extra terms allow (e.g. new skull contacts pressing in).
+    const double a = limit ? limit(x_, dx) : 1.0;
+    if (a < 1) {
+      dx *= a;
+      ds *= a;
+    }
     if (!extra && !control) {
       x_ += dx;
       rn = residual(r);
