@@ -34,7 +34,7 @@ struct NodeParameters {
   double output_period = 0.001;
   int blas_threads = 1;
   // ~setup_threads: BLAS threads while the scene loads (the brain-shift pre-step, before any
-  // step; Simulation::setSetupThreads); 0: every core.
+  // step; Simulation::setSetupThreads); 0: every core (at most 8).
   int setup_threads = 0;
   // ~realtime_priority: SCHED_FIFO priority of the stepping thread (1-99; 0: the default
   // scheduler). A control loop's simulator, like the loop itself, needs it to keep its

@@ -8,6 +8,7 @@
 #include <unistd.h>
 
 #include <cstdlib>
+#include <mutex>
 
 namespace needle_sim {
 
@@ -29,21 +30,44 @@ inline int blasThreads() {
   return f ? f() : 0;
 }
 
-// n BLAS threads (n > 0) while alive, then the count there was before; n <= 0: no change.
+// n OpenBLAS threads (n > 0) while alive, then the count there was before; n <= 0: no change.
+// OpenMP's count is left alone. Scopes alive on several threads at once share the raised
+// count: the first saves the count before, the last restores it. (Changing the count under
+// another thread's running BLAS calls is not safe: callers that run BLAS in parallel do not
+// open one.)
 class ScopedBlasThreads {
  public:
-  explicit ScopedBlasThreads(int n) : before_(n > 0 ? blasThreads() : 0) {
-    if (before_ > 0 && n != before_) setBlasThreads(n);
-    else before_ = 0;
+  explicit ScopedBlasThreads(int n) {
+    if (n <= 0 || !setter()) return;
+    Shared& s = shared();
+    std::lock_guard<std::mutex> lk(s.m);
+    if (s.users++ == 0) {
+      s.before = blasThreads();
+      if (s.before > 0 && s.before != n) setter()(n);
+    }
+    active_ = true;
   }
   ~ScopedBlasThreads() {
-    if (before_ > 0) setBlasThreads(before_);
+    if (!active_) return;
+    Shared& s = shared();
+    std::lock_guard<std::mutex> lk(s.m);
+    if (--s.users == 0 && s.before > 0) setter()(s.before);
   }
   ScopedBlasThreads(const ScopedBlasThreads&) = delete;
   ScopedBlasThreads& operator=(const ScopedBlasThreads&) = delete;
 
  private:
-  int before_;
+  struct Shared {
+    std::mutex m;
+    int users = 0, before = 0;
+  };
+  static Shared& shared() {
+    static Shared s;
+    return s;
+  }
+  using Setter = void (*)(int);
+  static Setter setter() { return reinterpret_cast<Setter>(dlsym(RTLD_DEFAULT, "openblas_set_num_threads")); }
+  bool active_ = false;
 };
 
 // Debian's CHOLMOD runs small OpenMP loops inside the supernodal factorisation with a

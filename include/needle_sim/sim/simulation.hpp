@@ -30,6 +30,13 @@ HexMesh buildTissueMesh(const TissueScene& tissue);
 
 class Simulation {
  public:
+  // BLAS threads while a scene with a brain shift loads (its pre-step and the first step's
+  // factor, on grids of 10,000 DOFs or more), process-wide: a one-off before any step, whose
+  // large factorisations gain from every core; the steps then run with the count set before
+  // (setBlasThreads). 0 (the default): no change. The tool and the node set it from
+  // --setup-threads and ~setup_threads.
+  static void setSetupThreads(int n);
+  static int setupThreads();
   struct Options {
     // The goal-oriented estimates of the targets' displacement errors will be asked for
     // (targetErrors): the brain shift's own is then kept at the end of its pre-step.
@@ -38,12 +45,6 @@ class Simulation {
   };
   // Throws InputError for scene content that only shows once the mesh exists (a probe
   // outside the tissue, a region selecting no node).
-  // BLAS threads while a scene loads (the brain-shift pre-step, the first step's factor),
-  // process-wide: a one-off before any step, whose large factorisations gain from every
-  // core; the steps then run with the count set before (setBlasThreads). 0 (the default): no
-  // change. The tool and the node set it from --setup-threads and ~setup_threads.
-  static void setSetupThreads(int n);
-  static int setupThreads();
   explicit Simulation(const Scene& scene) : Simulation(scene, Options{}) {}
   Simulation(const Scene& scene, const Options& options);
   // A deep copy of the whole state (bodies and their factors, constraints and insertion

@@ -1,7 +1,5 @@
 #include "needle_sim/sim/simulation.hpp"
 
-#include "needle_sim/core/blas_threads.hpp"
-
 #include <algorithm>
 #include <atomic>
 #include <thread>
@@ -237,16 +235,40 @@ void Simulation::preStep() {
   bool rough = adaptation_ != nullptr;
   // A uniformly refined grid starts from the shift solved on the grid one level coarser:
   // the controlled solve there finds the load scale and most of the skull's contact set at a
-  // fraction of the cost (nested iteration; doc/method.md "Brain shift").
-  const BrainShiftResult coarse = adaptation_ ? BrainShiftResult{} : coarseShiftStart(t);
-  if (coarse.coarse_dofs > 0) scale = coarse.coarse_load_scale;
+  // fraction of the cost (nested iteration; doc/method.md "Brain shift"). Its counts and
+  // times are part of the totals.
+  BrainShiftResult coarse = adaptation_ ? BrainShiftResult{} : coarseShiftStart(t);
+  if (coarse.coarse_dofs > 0) {
+    scale = coarse.coarse_load_scale;
+    total.newton_iterations = coarse.newton_iterations;
+    total.factorizations = coarse.factorizations;
+    total.load_solves = coarse.load_solves;
+    total.multiplier_updates = coarse.multiplier_updates;
+    total.factor_ms = coarse.factor_ms;
+    total.solve_ms = coarse.solve_ms;
+  }
   for (int pass = 1;; ++pass) {
     // The coarse mesh's first pass only shows where to refine: its load scale (which the
     // refined meshes change severalfold, the clamps holding more nodes) is not solved for.
-    const BrainShiftResult r =
-        shift_->apply(*tissue_, t >= 0 ? &targets_[t].point : nullptr, scale, rough, !(rough && pass == 1));
-    const int iterations = total.newton_iterations + r.newton_iterations + (pass == 1 ? coarse.newton_iterations : 0);
-    const int factorizations = total.factorizations + r.factorizations + (pass == 1 ? coarse.factorizations : 0);
+    auto solve = [&] {
+      return shift_->apply(*tissue_, t >= 0 ? &targets_[t].point : nullptr, scale, rough, !(rough && pass == 1));
+    };
+    BrainShiftResult r;
+    try {
+      r = solve();
+    } catch (const NumericalError&) {
+      if (coarse.coarse_dofs == 0) throw;
+      // The coarse start led the solve astray: from rest, as without it.
+      tissue_->setState(tissue_->mesh().restPositions(), VecX::Zero(tissue_->mesh().numDofs()));
+      tissue_->resetExternalForce();
+      shift_ = std::make_unique<BrainShift>(*scene_.brain_shift, scene_.tissue, organ_.get());
+      coarse = BrainShiftResult{};
+      total = BrainShiftResult{};
+      scale = 1.0;
+      r = solve();
+    }
+    const int iterations = total.newton_iterations + r.newton_iterations;
+    const int factorizations = total.factorizations + r.factorizations;
     const int solves = total.load_solves + r.load_solves, updates = total.multiplier_updates + r.multiplier_updates;
     const double fms = total.factor_ms + r.factor_ms, sms = total.solve_ms + r.solve_ms;
     total = r;
@@ -305,35 +327,40 @@ void Simulation::preStep() {
   shift_result_ = total;
 }
 
-BrainShiftResult Simulation::coarseShiftStart(int t) {
+BrainShiftResult Simulation::coarseShiftStart(int target) {
   const BrainShiftSettings& settings = *scene_.brain_shift;
   const ImmersedGridSettings& fine = scene_.tissue.geometry.grid;
-  if (!settings.coarse_start || !immersed_ || fine.refine < 1 || t < 0 || !settings.target_shift) return {};
+  if (!settings.coarse_start || !immersed_ || fine.refine < 1 || target < 0 || !settings.target_shift) return {};
   const auto t0 = steadyNow();
   ImmersedGridSettings g = fine;
-  --g.refine;  // the same origin and box: every node of this grid lies in a coarse cell
-  const ImmersedGrid grid(scene_.tissue.geometry.surface, g);
+  --g.refine;  // the same origin and box: this grid's nodes lie in its box
   std::unique_ptr<TissueBody> coarse;
   BrainShiftResult r;
+  // An optional speed-up: whatever fails on the coarse grid (a clamp region selecting none
+  // of its nodes, a solve that does not converge, a degenerate mesh) means no start, and
+  // this grid solves from rest as without it.
   try {
+    const ImmersedGrid grid(scene_.tissue.geometry.surface, g);
     coarse = std::make_unique<TissueBody>(grid.mesh(), scene_.tissue, scene_.solver, scene_.file);
     const EmbeddedSurface organ(scene_.tissue.geometry.surface, coarse->mesh());
     BrainShift shift(settings, scene_.tissue, &organ);
     const PointLocator locator(coarse->mesh());
-    EmbeddedPoint target;
-    const Vec3& rest = targets_[t].point.rest;
-    if (!locator.locate(rest, target) && !locator.locateNearest(rest, target)) return {};
+    EmbeddedPoint point;
+    const Vec3& rest = targets_[target].point.rest;
+    if (!locator.locate(rest, point) && !locator.locateNearest(rest, point)) return {};
     // Rough (to 1e-3, penetrations to 1 % of the gap), the load scaled to the target shift.
-    r = shift.apply(*coarse, &target, 1.0, true, true);
-  } catch (const InputError&) {  // e.g. a clamp region selecting no node of the coarse grid
+    r = shift.apply(*coarse, &point, 1.0, true, true);
+  } catch (const std::runtime_error&) {  // InputError, NumericalError, CHOLMOD's failures
     return {};
-  } catch (const NumericalError&) {  // a coarse grid that cannot carry the shift
-    return {};                       // (this grid then solves from rest, as without the start)
+  } catch (const std::invalid_argument&) {
+    return {};
   }
   const TissueBody& body = *coarse;
   const PointLocator locator(body.mesh());
   auto embed = [&](const Vec3& p, EmbeddedPoint& ep) { return locator.locate(p, ep) || locator.locateNearest(p, ep); };
-  // Its displacements, interpolated at this grid's nodes (the clamped ones keep theirs).
+  // Its displacements, interpolated at this grid's nodes (the clamped ones keep theirs; one
+  // outside the coarse grid's kept cells, which sample the surface more coarsely, takes the
+  // nearest cell's).
   const VecX u = body.displacements();
   VecX x = tissue_->positions();
   for (int i = 0; i < tissue_->mesh().numNodes(); ++i) {

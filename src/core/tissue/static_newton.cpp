@@ -150,6 +150,7 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
   double rn = 0, gw = 1;
   const double lin_tol = solver_->settings().tolerance;
   bool tight = true;  // the last correction was solved to the solver's own tolerance
+  bool cut = false;   // the last step was cut by the limit (its length says nothing of convergence)
   bool refactor_next = false;
   for (int it = 0; it <= max_iterations; ++it) {
     auto t0 = steadyNow();
@@ -171,7 +172,7 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     // An inexact correction (CG from zero) underestimates the Newton step: a small one is
     // trusted only when solved to the solver's own tolerance, else it is solved again so.
     const double un = (x_ - rest_).norm();
-    const bool small_step = it > 0 && dx.norm() <= tol * un;
+    const bool small_step = it > 0 && !cut && dx.norm() <= tol * un;
     const bool balanced = rn <= tol * ref || ref == 0 || (small_step && tight);
     if (balanced && (!control || std::abs(c) <= control->tolerance)) {
       st.newton_iterations = it;
@@ -226,7 +227,8 @@ StepStats TissueBody::solveStatic(const ExtraForce& extra, double tol, int max_i
     t0 = steadyNow();
     // The part of the step the extra terms allow (e.g. new skull contacts pressing in).
     const double a = limit ? limit(x_, dx) : 1.0;
-    if (a < 1) {
+    cut = a < 1;
+    if (cut) {
       dx *= a;
       ds *= a;
     }
