@@ -6,6 +6,8 @@
 #include <string>
 
 #include "needle_sim/core/blas_threads.hpp"
+#include "needle_sim/core/denormals.hpp"
+#include "needle_sim/core/heap_retention.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/ros/simulator_ros.hpp"
 
@@ -21,6 +23,10 @@ int main(int argc, char** argv) {
       return 0;
     }
   needle_sim::limitOpenMpThreads(argv);
+  // As the tool: threads made later inherit the flush-to-zero mode (the stepping thread also
+  // sets it itself, for the nodelet).
+  needle_sim::flushDenormalsToZero();
+  needle_sim::retainFreedHeap();
   ros::init(argc, argv, "needle_sim");
   ros::NodeHandle nh, pnh("~");
   try {

@@ -23,6 +23,7 @@
 #include "limits_reconfigure.hpp"
 #include "needle_sim/core/background_priority.hpp"
 #include "needle_sim/core/blas_threads.hpp"
+#include "needle_sim/core/denormals.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "node_parameters.hpp"
@@ -214,6 +215,7 @@ void SimulatorRos::restartAfterClockJump(const char* what) {
 
 void SimulatorRos::setStepperPriority() {
   nameThisThread("ns_step");
+  flushDenormalsToZero();  // as the tool's steps (inherited from main in the node; a nodelet's thread sets it here)
   const int prio = params_->realtime_priority;
   if (prio <= 0) return;
   sched_param sp{};
@@ -325,6 +327,7 @@ void SimulatorRos::applyCommands() {
 
 void SimulatorRos::errorLoop() {
   nameThisThread("ns_target_err");
+  flushDenormalsToZero();
   for (;;) {
     std::unique_ptr<Simulation> job;
     {

@@ -29,6 +29,7 @@
 
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/denormals.hpp"
+#include "needle_sim/core/heap_retention.hpp"
 #include "needle_sim/calibration/force_record.hpp"
 #include "needle_sim/sim/command_replay.hpp"
 #include "needle_sim/core/error.hpp"
@@ -250,6 +251,7 @@ int main(int argc, char** argv) {
   }
   needle_sim::limitOpenMpThreads(argv);
   flushDenormalsToZero();
+  retainFreedHeap();
   CLI::App app{"needle_sim: real-time, error-controlled FE simulation of needle insertion (headless driver)", "needle_sim"};
   app.require_subcommand(1);
   int blas_threads = 1;

@@ -2,6 +2,7 @@
 // stiffness product with the assembled one, robustness on inverted elements.
 #include <gtest/gtest.h>
 
+#include <array>
 #include <random>
 
 #include "needle_sim/fem/corotational_hex_model.hpp"
@@ -87,6 +88,38 @@ TEST(Corotational, UniformGridSharesOneReferenceMatrix) {
   Fixture f;
   EXPECT_EQ(f.model.numReferences(), 1);
   EXPECT_NEAR(f.model.nodalVolume().sum(), 0.04 * 0.02 * 0.02, 1e-18);
+}
+
+// Cut cells (immersed grids) share their shape's reference, scaled by their volume fraction:
+// one reference per distinct fraction, each the full cell's times the fraction.
+TEST(Corotational, CutCellsScaleTheirShapesReference) {
+  HexMesh mesh = HexMesh::box(Vec3(0, 0, 0), Vec3(0.04, 0.02, 0.02), Vec3i(4, 2, 2));
+  std::vector<double> fraction(mesh.numElements());
+  for (int e = 0; e < mesh.numElements(); ++e) fraction[e] = e % 3 == 0 ? 1.0 : e % 3 == 1 ? 0.25 : 0.6;
+  mesh.setFractions(fraction);
+  const LinearElasticMaterial mat{1e7, 0.4, 1000};
+  CorotationalHexModel model(mesh, mat);
+  EXPECT_EQ(model.numReferences(), 3);
+  double volume = 0;
+  for (int e = 0; e < mesh.numElements(); ++e) {
+    const hex8::ElementReference full = hex8::computeReference(mesh.elementCorners(e), mat);
+    const auto& r = model.reference(e);
+    EXPECT_LT((r.K0 - fraction[e] * full.K0).norm(), 1e-12 * full.K0.norm()) << e;
+    EXPECT_LT((r.node_volume - fraction[e] * full.node_volume).norm(), 1e-12 * full.node_volume.norm()) << e;
+    volume += fraction[e] * full.volume;
+  }
+  EXPECT_NEAR(model.nodalVolume().sum(), volume, 1e-12 * volume);
+  // A distorted block: every element a shape of its own.
+  std::array<Vec3, 8> corners;
+  for (int a = 0; a < 8; ++a)
+    for (int d = 0; d < 3; ++d) corners[a][d] = hex8::kCornerSigns[a][d] < 0 ? 0.0 : 1.0;
+  corners[6] += Vec3(0.15, -0.1, 0.2);
+  const HexMesh distorted = HexMesh::mappedBlock(corners, Vec3i(2, 2, 2));
+  CorotationalHexModel each(distorted, mat);
+  EXPECT_EQ(each.numReferences(), distorted.numElements());
+  for (int e = 0; e < distorted.numElements(); ++e)
+    EXPECT_LT((each.reference(e).K0 - hex8::computeReference(distorted.elementCorners(e), mat).K0).norm(),
+              1e-12 * each.reference(e).K0.norm());
 }
 
 TEST(Corotational, InvertedElementGivesProperRotationAndFiniteForces) {

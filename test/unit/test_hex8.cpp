@@ -2,7 +2,10 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Eigenvalues>
+#include <array>
+#include <random>
 
+#include "needle_sim/fem/embedded_point.hpp"
 #include "needle_sim/fem/hex8.hpp"
 
 using namespace needle_sim;
@@ -74,6 +77,51 @@ TEST(Hex8, InverseMapRecoversNaturalCoordinates) {
   Eigen::Vector3d back;
   ASSERT_TRUE(hex8::inverseMap(X, p, back));
   EXPECT_LT((back - xi).norm(), 1e-12);
+}
+
+// The locator passes over a bin's elements whose bounding box (widened a little beyond the
+// 1e-9 tolerance in xi) does not hold the point, before inverting the map: the elements it
+// finds and misses are those a search of every element finds and misses, on a distorted
+// block, at random points, on element faces and corners, and a rounding error outside.
+TEST(Hex8, PointLocatorFindsWhatASearchOfEveryElementFinds) {
+  std::array<Eigen::Vector3d, 8> corners;
+  for (int a = 0; a < 8; ++a)
+    for (int d = 0; d < 3; ++d) corners[a][d] = hex8::kCornerSigns[a][d] < 0 ? 0.0 : 1.0;
+  corners[6] += Eigen::Vector3d(0.3, -0.2, 0.25);
+  corners[3] += Eigen::Vector3d(-0.1, 0.15, 0.05);
+  const HexMesh mesh = HexMesh::mappedBlock(corners, Vec3i(4, 3, 5));
+  const PointLocator locator(mesh);
+  auto inside = [&](const Vec3& p, int e) {
+    Eigen::Vector3d xi;
+    return hex8::inverseMap(mesh.elementCorners(e), p, xi) && xi.cwiseAbs().maxCoeff() <= 1 + 1e-9;
+  };
+  std::vector<Vec3> points;
+  std::mt19937 g(7);
+  const Vec3 lo = mesh.boundsMin(), hi = mesh.boundsMax();
+  std::uniform_real_distribution<double> U(0, 1);
+  for (int k = 0; k < 2000; ++k) points.push_back(lo + (hi - lo).cwiseProduct(Vec3(U(g), U(g), U(g))));
+  for (int e = 0; e < mesh.numElements(); ++e) {
+    const auto X = mesh.elementCorners(e);
+    for (const Vec3& xi : {Vec3(1, 0.3, -0.2), Vec3(-1, -1, -1), Vec3(1, 1, 1), Vec3(0.5, -1, 1)})
+      for (double out : {0.0, 1e-12, 1e-6}) points.push_back(X.transpose() * hex8::shape(xi * (1 + out)));
+  }
+  int found = 0, missed = 0;
+  for (const Vec3& p : points) {
+    bool any = false;
+    for (int e = 0; e < mesh.numElements() && !any; ++e) any = inside(p, e);
+    EmbeddedPoint ep;
+    const bool located = locator.locate(p, ep);
+    ASSERT_EQ(located, any) << p.transpose();
+    if (!located) {
+      ++missed;
+      continue;
+    }
+    ++found;
+    EXPECT_TRUE(inside(p, ep.element));
+    EXPECT_LT((ep.interpolate(mesh, mesh.restPositions()) - p).norm(), 1e-9);
+  }
+  EXPECT_GT(found, 1000);
+  EXPECT_GT(missed, 100);  // the block is distorted: its bounding box holds points outside it
 }
 
 TEST(Hex8, DegenerateElementIsRejected) {

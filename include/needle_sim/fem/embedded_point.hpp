@@ -42,6 +42,10 @@ class PointLocator {
   Vec3 lo_, hi_, cell_;
   Vec3i dims_;
   std::vector<std::vector<int>> bins_;
+  // Each element's bounding box, widened by a little more than locate's tolerance: a point
+  // outside it cannot map into the element (a trilinear element lies in the convex hull of
+  // its corners), so most candidates of a bin are passed over without a Newton inversion.
+  std::vector<Vec3> box_lo_, box_hi_;
   int binIndex(const Vec3i& c) const { return c[0] + dims_[0] * (c[1] + dims_[1] * c[2]); }
   Vec3i binOf(const Vec3& p) const;
 };

@@ -35,6 +35,12 @@ struct ElementReference {
 // Throws std::invalid_argument if the element is degenerate or inverted at a Gauss point.
 ElementReference computeReference(const Mat83& X, const LinearElasticMaterial& material);
 
+// An element's rest shape up to translation, quantised (corner offsets from corner 0 in
+// units of `quantum`): elements with equal keys share what depends on the shape alone (a
+// grid has a few cell shapes among thousands of cells).
+using ShapeKey = std::array<long long, 21>;
+ShapeKey shapeKey(const Mat83& X, double quantum);
+
 // Strain-displacement matrix B (6x24) for the given spatial shape-function gradients.
 Eigen::Matrix<double, 6, 24> strainDisplacement(const Mat83& grad);
 

@@ -4,6 +4,7 @@
 #include <array>
 #include <cassert>
 #include <cmath>
+#include <map>
 
 #include "needle_sim/fem/hex8.hpp"
 
@@ -113,15 +114,17 @@ SprEstimator::SprEstimator(const CorotationalHexModel& model) : model_(model) {
     interior_[n] = fitMap(pts, mesh.node(n), fit_[n]);
   }
   const GaussTable& gt = gaussTable();
-  shapes_.resize(model.numReferences());
-  std::vector<char> done(shapes_.size(), 0);
+  std::map<hex8::ShapeKey, int> index;
+  const double quantum = 1e-10 * std::max((mesh.boundsMax() - mesh.boundsMin()).norm(), 1e-300);
+  shape_of_.resize(mesh.numElements());
   for (int e = 0; e < mesh.numElements(); ++e) {
-    const int r = model.referenceIndex(e);
-    if (done[r]) continue;
-    done[r] = 1;
     const auto X = mesh.elementCorners(e);
-    ShapeTables& t = shapes_[r];
-    t.centroid_B = hex8::strainDisplacement(model.reference(e).grad_centroid);
+    const auto [it, fresh] = index.try_emplace(hex8::shapeKey(X, quantum), static_cast<int>(shapes_.size()));
+    shape_of_[e] = it->second;
+    if (!fresh) continue;
+    ShapeTables& t = shapes_.emplace_back();
+    const Mat3 Jc = X.transpose() * gt.centroid_grad;
+    t.centroid_B = hex8::strainDisplacement(gt.centroid_grad * Jc.inverse());
     for (int q = 0; q < 8; ++q) {
       const Mat3 J = X.transpose() * gt.grad[q];
       t.gauss_detJ[q] = J.determinant();

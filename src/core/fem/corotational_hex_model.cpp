@@ -15,13 +15,9 @@ namespace {
 // Key identifying an element's rest shape up to translation, quantised to 1e-10 of the
 // mesh size, so that identical grid cells share one reference.
 // The volume fraction (immersed geometry) is part of the key: it scales K0 and the volumes.
-std::array<long long, 22> shapeKey(const Eigen::Matrix<double, 8, 3>& X, double quantum, double fraction) {
-  std::array<long long, 22> k{};
-  int c = 0;
-  for (int a = 1; a < 8; ++a)
-    for (int d = 0; d < 3; ++d) k[c++] = std::llround((X(a, d) - X(0, d)) / quantum);
-  k[c] = std::llround(fraction * 1e12);
-  return k;
+using ReferenceKey = std::pair<hex8::ShapeKey, long long>;
+ReferenceKey referenceKey(const Eigen::Matrix<double, 8, 3>& X, double quantum, double fraction) {
+  return {hex8::shapeKey(X, quantum), std::llround(fraction * 1e12)};
 }
 
 // Rotation R maximising tr(R^T A) (the rotation of the polar decomposition A = R U when
@@ -69,32 +65,43 @@ CorotationalHexModel::CorotationalHexModel(const CorotationalHexModel& o, const 
 
 CorotationalHexModel::CorotationalHexModel(const HexMesh& mesh, const LinearElasticMaterial& material)
     : mesh_(mesh), material_(material) {
-  std::map<std::array<long long, 22>, int> index;
+  // Elements of one rest shape and volume fraction share a reference; the reference of each
+  // shape is computed once, and the cut cells of an immersed grid (hundreds of fractions, a
+  // few shapes) scale a copy of it. The keys first, so that refs_ is allocated once (4.6 kB
+  // a reference: growing it cost the adaptive DBS pre-step 10-20 ms a mesh).
+  std::map<ReferenceKey, int> index;
+  std::vector<int> first;  // an element of each reference
   ref_of_.resize(mesh.numElements());
-  nodal_volume_ = VecX::Zero(mesh.numNodes());
   const double quantum = 1e-10 * std::max((mesh.boundsMax() - mesh.boundsMin()).norm(), 1e-300);
   for (int e = 0; e < mesh.numElements(); ++e) {
+    const auto [it, fresh] = index.try_emplace(referenceKey(mesh.elementCorners(e), quantum, mesh.fraction(e)),
+                                               static_cast<int>(first.size()));
+    if (fresh) first.push_back(e);
+    ref_of_[e] = it->second;
+  }
+  std::map<hex8::ShapeKey, hex8::ElementReference> unit;
+  refs_.reserve(first.size());
+  for (int e : first) {
     const auto X = mesh.elementCorners(e);
-    const double frac = mesh.fraction(e);
-    const auto key = shapeKey(X, quantum, frac);
-    auto it = index.find(key);
-    if (it == index.end()) {
+    auto shape = unit.find(hex8::shapeKey(X, quantum));
+    if (shape == unit.end()) {
       try {
-        refs_.push_back(hex8::computeReference(X, material));
+        shape = unit.emplace(hex8::shapeKey(X, quantum), hex8::computeReference(X, material)).first;
       } catch (const std::invalid_argument&) {
         throw std::invalid_argument("element " + std::to_string(e) + " is degenerate or inverted at rest");
       }
-      if (frac != 1.0) {
-        auto& r = refs_.back();
-        r.K0 *= frac;
-        r.node_volume *= frac;
-        r.volume *= frac;
-      }
-      it = index.emplace(key, static_cast<int>(refs_.size()) - 1).first;
     }
-    ref_of_[e] = it->second;
-    for (int a = 0; a < 8; ++a) nodal_volume_[mesh.element(e)[a]] += refs_[it->second].node_volume[a];
+    auto& r = refs_.emplace_back(shape->second);
+    const double frac = mesh.fraction(e);
+    if (frac != 1.0) {
+      r.K0 *= frac;
+      r.node_volume *= frac;
+      r.volume *= frac;
+    }
   }
+  nodal_volume_ = VecX::Zero(mesh.numNodes());
+  for (int e = 0; e < mesh.numElements(); ++e)
+    for (int a = 0; a < 8; ++a) nodal_volume_[mesh.element(e)[a]] += refs_[ref_of_[e]].node_volume[a];
   quat_.assign(mesh.numElements(), Eigen::Quaterniond::Identity());
   rot_.assign(mesh.numElements(), Mat3::Identity());
 }

@@ -16,10 +16,16 @@ PointLocator::PointLocator(const HexMesh& mesh) : mesh_(mesh) {
   for (int d = 0; d < 3; ++d) dims_[d] = std::clamp(static_cast<int>(std::ceil(ext[d] / h)), 1, 512);
   cell_ = ext.cwiseQuotient(dims_.cast<double>());
   bins_.assign(static_cast<size_t>(dims_.prod()), {});
+  box_lo_.resize(mesh.numElements());
+  box_hi_.resize(mesh.numElements());
   for (int e = 0; e < mesh.numElements(); ++e) {
     const auto X = mesh.elementCorners(e);
-    const Vec3i a = binOf(X.colwise().minCoeff().transpose());
-    const Vec3i b = binOf(X.colwise().maxCoeff().transpose());
+    const Vec3 lo = X.colwise().minCoeff().transpose(), hi = X.colwise().maxCoeff().transpose();
+    const Vec3 pad = Vec3::Constant(1e-7 * (hi - lo).norm());
+    box_lo_[e] = lo - pad;
+    box_hi_[e] = hi + pad;
+    const Vec3i a = binOf(lo);
+    const Vec3i b = binOf(hi);
     for (int k = a[2]; k <= b[2]; ++k)
       for (int j = a[1]; j <= b[1]; ++j)
         for (int i = a[0]; i <= b[0]; ++i) bins_[binIndex({i, j, k})].push_back(e);
@@ -39,6 +45,7 @@ bool PointLocator::locate(const Vec3& p, EmbeddedPoint& out) const {
       ((p - hi_).array() > tol.array()).any())
     return false;
   for (int e : bins_[binIndex(binOf(p))]) {
+    if (((p - box_lo_[e]).array() < 0).any() || ((p - box_hi_[e]).array() > 0).any()) continue;
     Vec3 xi;
     if (!hex8::inverseMap(mesh_.elementCorners(e), p, xi)) continue;
     if (xi.cwiseAbs().maxCoeff() > 1 + 1e-9) continue;

@@ -88,6 +88,14 @@ ElementReference computeReference(const Mat83& X, const LinearElasticMaterial& m
   return ref;
 }
 
+ShapeKey shapeKey(const Mat83& X, double quantum) {
+  ShapeKey k{};
+  int c = 0;
+  for (int a = 1; a < 8; ++a)
+    for (int d = 0; d < 3; ++d) k[c++] = std::llround((X(a, d) - X(0, d)) / quantum);
+  return k;
+}
+
 bool inverseMap(const Mat83& X, const Eigen::Vector3d& p, Eigen::Vector3d& xi) {
   xi.setZero();
   const double scale = (X.colwise().maxCoeff() - X.colwise().minCoeff()).norm();
