@@ -137,6 +137,7 @@ BrainShiftResult BrainShift::apply(TissueBody& body, const EmbeddedPoint* target
       if (pen <= pen_tol) {
         if (!inexact) break;
         inexact = false;  // the same multipliers, now to the full tolerance
+        --pass;           // (not a round of its own)
         continue;
       }
       ++res.multiplier_updates;
