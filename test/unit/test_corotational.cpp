@@ -100,6 +100,7 @@ TEST(Corotational, CutCellsScaleTheirShapesReference) {
   const LinearElasticMaterial mat{1e7, 0.4, 1000};
   CorotationalHexModel model(mesh, mat);
   EXPECT_EQ(model.numReferences(), 3);
+  EXPECT_EQ(model.numShapes(), 1);
   double volume = 0;
   for (int e = 0; e < mesh.numElements(); ++e) {
     const hex8::ElementReference full = hex8::computeReference(mesh.elementCorners(e), mat);
@@ -117,6 +118,7 @@ TEST(Corotational, CutCellsScaleTheirShapesReference) {
   const HexMesh distorted = HexMesh::mappedBlock(corners, Vec3i(2, 2, 2));
   CorotationalHexModel each(distorted, mat);
   EXPECT_EQ(each.numReferences(), distorted.numElements());
+  EXPECT_EQ(each.numShapes(), distorted.numElements());
   for (int e = 0; e < distorted.numElements(); ++e)
     EXPECT_LT((each.reference(e).K0 - hex8::computeReference(distorted.elementCorners(e), mat).K0).norm(),
               1e-12 * each.reference(e).K0.norm());

@@ -78,15 +78,15 @@ class SprEstimator {
  public:
 
  private:
-  // Per rest shape (hex8::shapeKey; the volume fraction, which the model's references
-  // include, plays no part): B at the centroid and at the 2x2x2 Gauss points with det J there.
-  // An immersed grid has a few cell shapes but hundreds of references (10 kB each here).
+  // Per rest shape (the model's shapes: the volume fraction, which its references include,
+  // plays no part): B at the centroid and at the 2x2x2 Gauss points with det J there. An
+  // immersed grid has a few cell shapes but hundreds of references (10 kB each here).
   struct ShapeTables {
     Eigen::Matrix<double, 6, 24> centroid_B;
     std::array<Eigen::Matrix<double, 6, 24>, 8> gauss_B;
     std::array<double, 8> gauss_detJ{};
   };
-  const ShapeTables& shape(int e) const { return shapes_[shape_of_[e]]; }
+  const ShapeTables& shape(int e) const { return shapes_[model_.shapeIndex(e)]; }
   // Element rotations of positions x, kept for the last two position vectors asked (the
   // primal's and the reference's: the duals of a pass ask for the same ones again).
   const std::vector<Mat3>& rotations(const VecX& x, const std::vector<Eigen::Quaterniond>* guesses = nullptr) const;
@@ -99,7 +99,6 @@ class SprEstimator {
   // coefficients (4 x patch size; coefficients = fit * values), made once per mesh.
   std::vector<Eigen::Matrix<double, 4, Eigen::Dynamic>> fit_;
   std::vector<ShapeTables> shapes_;
-  std::vector<int> shape_of_;  // element -> shapes_
   struct RotationCache {
     VecX x;
     std::vector<Mat3> R;

@@ -34,10 +34,14 @@ class CorotationalHexModel {
   const HexMesh& mesh() const { return mesh_; }
   const LinearElasticMaterial& material() const { return material_; }
   int numElements() const { return mesh_.numElements(); }
-  // Number of distinct element shapes, i.e. K0 matrices stored.
+  // Number of distinct element references (rest shape and volume fraction), i.e. K0 matrices stored.
   int numReferences() const { return static_cast<int>(refs_.size()); }
   const hex8::ElementReference& reference(int e) const { return refs_[ref_of_[e]]; }
-  int referenceIndex(int e) const { return ref_of_[e]; }  // elements of one rest shape share it
+  int referenceIndex(int e) const { return ref_of_[e]; }  // elements of one rest shape and fraction share it
+  // Distinct rest shapes (hex8::shapeKey, the fraction left out): what depends on the
+  // geometry alone is shared by the elements of one shape (the SPR estimator's B tables).
+  int numShapes() const { return num_shapes_; }
+  int shapeIndex(int e) const { return shape_of_[e]; }
 
   // Integral of N_a over the mesh, per node: the lumped mass is density times this.
   const VecX& nodalVolume() const { return nodal_volume_; }
@@ -96,6 +100,8 @@ class CorotationalHexModel {
   LinearElasticMaterial material_;
   std::vector<hex8::ElementReference> refs_;
   std::vector<int> ref_of_;
+  std::vector<int> shape_of_;
+  int num_shapes_ = 0;
   std::vector<Eigen::Quaterniond> quat_;
   std::vector<Mat3> rot_;
   VecX nodal_volume_;

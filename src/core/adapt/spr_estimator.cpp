@@ -4,7 +4,6 @@
 #include <array>
 #include <cassert>
 #include <cmath>
-#include <map>
 
 #include "needle_sim/fem/hex8.hpp"
 
@@ -114,15 +113,14 @@ SprEstimator::SprEstimator(const CorotationalHexModel& model) : model_(model) {
     interior_[n] = fitMap(pts, mesh.node(n), fit_[n]);
   }
   const GaussTable& gt = gaussTable();
-  std::map<hex8::ShapeKey, int> index;
-  const double quantum = 1e-10 * std::max((mesh.boundsMax() - mesh.boundsMin()).norm(), 1e-300);
-  shape_of_.resize(mesh.numElements());
+  shapes_.resize(model.numShapes());
+  std::vector<char> done(shapes_.size(), 0);
   for (int e = 0; e < mesh.numElements(); ++e) {
+    const int k = model.shapeIndex(e);
+    if (done[k]) continue;
+    done[k] = 1;
     const auto X = mesh.elementCorners(e);
-    const auto [it, fresh] = index.try_emplace(hex8::shapeKey(X, quantum), static_cast<int>(shapes_.size()));
-    shape_of_[e] = it->second;
-    if (!fresh) continue;
-    ShapeTables& t = shapes_.emplace_back();
+    ShapeTables& t = shapes_[k];
     const Mat3 Jc = X.transpose() * gt.centroid_grad;
     t.centroid_B = hex8::strainDisplacement(gt.centroid_grad * Jc.inverse());
     for (int q = 0; q < 8; ++q) {

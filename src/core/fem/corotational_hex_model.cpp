@@ -5,6 +5,7 @@
 #include <cmath>
 #include <Eigen/Cholesky>
 #include <map>
+#include <optional>
 #include <stdexcept>
 #include <string>
 
@@ -56,6 +57,8 @@ CorotationalHexModel::CorotationalHexModel(const CorotationalHexModel& o, const 
       material_(o.material_),
       refs_(o.refs_),
       ref_of_(o.ref_of_),
+      shape_of_(o.shape_of_),
+      num_shapes_(o.num_shapes_),
       quat_(o.quat_),
       rot_(o.rot_),
       nodal_volume_(o.nodal_volume_),
@@ -70,28 +73,31 @@ CorotationalHexModel::CorotationalHexModel(const HexMesh& mesh, const LinearElas
   // few shapes) scale a copy of it. The keys first, so that refs_ is allocated once (4.6 kB
   // a reference: growing it cost the adaptive DBS pre-step 10-20 ms a mesh).
   std::map<ReferenceKey, int> index;
+  std::map<hex8::ShapeKey, int> shapes;
   std::vector<int> first;  // an element of each reference
   ref_of_.resize(mesh.numElements());
+  shape_of_.resize(mesh.numElements());
   const double quantum = 1e-10 * std::max((mesh.boundsMax() - mesh.boundsMin()).norm(), 1e-300);
   for (int e = 0; e < mesh.numElements(); ++e) {
-    const auto [it, fresh] = index.try_emplace(referenceKey(mesh.elementCorners(e), quantum, mesh.fraction(e)),
-                                               static_cast<int>(first.size()));
+    const ReferenceKey key = referenceKey(mesh.elementCorners(e), quantum, mesh.fraction(e));
+    shape_of_[e] = shapes.try_emplace(key.first, static_cast<int>(shapes.size())).first->second;
+    const auto [it, fresh] = index.try_emplace(key, static_cast<int>(first.size()));
     if (fresh) first.push_back(e);
     ref_of_[e] = it->second;
   }
-  std::map<hex8::ShapeKey, hex8::ElementReference> unit;
+  num_shapes_ = static_cast<int>(shapes.size());
+  std::vector<std::optional<hex8::ElementReference>> unit(num_shapes_);
   refs_.reserve(first.size());
   for (int e : first) {
-    const auto X = mesh.elementCorners(e);
-    auto shape = unit.find(hex8::shapeKey(X, quantum));
-    if (shape == unit.end()) {
+    auto& shape = unit[shape_of_[e]];
+    if (!shape) {
       try {
-        shape = unit.emplace(hex8::shapeKey(X, quantum), hex8::computeReference(X, material)).first;
+        shape = hex8::computeReference(mesh.elementCorners(e), material);
       } catch (const std::invalid_argument&) {
         throw std::invalid_argument("element " + std::to_string(e) + " is degenerate or inverted at rest");
       }
     }
-    auto& r = refs_.emplace_back(shape->second);
+    auto& r = refs_.emplace_back(*shape);
     const double frac = mesh.fraction(e);
     if (frac != 1.0) {
       r.K0 *= frac;
