@@ -34,8 +34,9 @@ struct NodeParameters {
   double output_period = 0.001;
   int blas_threads = 1;
   // ~setup_threads: BLAS threads while the scene loads (the brain-shift pre-step, before any
-  // step; Simulation::setSetupThreads); 0: every core (at most 8).
-  int setup_threads = 0;
+  // step; Simulation::setSetupThreads); 0: every core (at most 8). One by default: a robot's
+  // machine is shared, and OpenBLAS's spinning threads made a busy machine's load 2-4x slower.
+  int setup_threads = 1;
   // ~realtime_priority: SCHED_FIFO priority of the stepping thread (1-99; 0: the default
   // scheduler). A control loop's simulator, like the loop itself, needs it to keep its
   // deadlines on a loaded machine; without the privilege the node warns and runs on.

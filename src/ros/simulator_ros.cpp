@@ -35,7 +35,8 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   params_ = std::make_unique<NodeParameters>(readParameters(pnh_));
   const NodeParameters& P = *params_;
   setBlasThreads(P.blas_threads);  // OpenBLAS threads spin between the small per-step solves
-  // Loading the scene comes before any step: its large factorisations may use every core.
+  // Loading the scene comes before any step: its large factorisations may use more threads
+  // (~setup_threads, 1 by default; 0: every core).
   Simulation::setSetupThreads(P.setup_threads > 0 ? P.setup_threads
                                                   : static_cast<int>(std::clamp(std::thread::hardware_concurrency(), 1u, 8u)));
   scene_ = loadScene(P.scene_file, P.overrides);

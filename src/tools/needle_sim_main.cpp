@@ -260,13 +260,15 @@ int main(int argc, char** argv) {
                  "factorisations)")
       ->capture_default_str()
       ->check(CLI::Range(1, 64));
-  // Loading a scene (the brain shift) runs before any step: every core by default.
-  int setup_threads = static_cast<int>(std::clamp(std::thread::hardware_concurrency(), 1u, 8u));
+  // Loading a scene (the brain shift) runs before any step. One thread by default: more pay
+  // a few per cent on an idle machine and cost 2-4x when another process keeps a core busy
+  // (OpenBLAS's threads spin; doc/method.md "Brain shift").
+  int setup_threads = 1;
   app.add_option("--setup-threads", setup_threads,
                  "BLAS threads while a scene loads (the brain-shift pre-step and the first factor, before "
-                 "any step); the steps then run with --blas-threads")
+                 "any step; 0: every core, at most 8); the steps then run with --blas-threads")
       ->capture_default_str()
-      ->check(CLI::Range(1, 64));
+      ->check(CLI::Range(0, 64));
 
   std::string scene_path, out_dir;
   std::vector<std::string> sets;
@@ -393,7 +395,8 @@ int main(int argc, char** argv) {
     auto args = withoutRosArgs(argc, argv);
     app.parse(args);
     setBlasThreads(blas_threads);
-    Simulation::setSetupThreads(setup_threads);
+    Simulation::setSetupThreads(setup_threads > 0 ? setup_threads
+                                                  : static_cast<int>(std::clamp(std::thread::hardware_concurrency(), 1u, 8u)));
     scene_path = resolveScene(scene_path);
     bench_opts.scene = resolveScene(bench_opts.scene);
     pred.scene = resolveScene(pred.scene);
