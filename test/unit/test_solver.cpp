@@ -201,6 +201,63 @@ TEST(SystemSolver, SynchronousRefreshStopsCgAtTheCostOfAFactorisation) {
   EXPECT_LT((x2 - A.ldlt().solve(b2)).norm(), 1e-8 * x2.norm());
 }
 
+// The duals of a goal-oriented estimate (solveWithFactor) take the factor as it is, but not one
+// that was given up (invalidate(): its matrix had other terms). Before 2026-12-04 they did:
+// after the brain shift, whose factor held the skull's contact blocks, the shift's duals took
+// 190 CG iterations a column on dbs_fine (9 s of its load). They factorise once, the next
+// dual call with the same matrix reuses that factor, and the next step's solve refactorises.
+TEST(SystemSolver, DualSolvesDoNotPreconditionWithAFactorThatWasGivenUp) {
+  SolverSetup s;
+  LinearSolverSettings set;
+  set.tolerance = 1e-10;
+  set.max_iterations = 2000;
+  SystemSolver solver(s.model, s.dofs, set);
+  const int n = s.dofs.numFree();
+  // The factor in use is of a matrix far from K: a mass-dominated dynamic one.
+  const double cm_step = 1.0, ck_step = 1e-7;
+  VecX x;
+  ASSERT_TRUE(solver.solve(s.mass_free, cm_step, ck_step, VecX::Ones(n), x).refactored);
+  Eigen::MatrixXd B(n, 3);
+  for (int k = 0; k < 3; ++k) B.col(k) = VecX::LinSpaced(n, -1.0 + k, 1.0 - 0.5 * k);
+  const Eigen::MatrixXd K = s.dense(0.0, 1.0);
+  const long f0 = solver.factor().factorizations();
+
+  // Kept (not invalidated): CG on it, many iterations, no factorisation. This is what the
+  // comparison below can fail against.
+  Eigen::MatrixXd Z;
+  bool converged = false;
+  const auto kept = solver.solveWithFactor(s.mass_free, 0.0, 1.0, B, Z, 1e-8, set.max_iterations, converged);
+  ASSERT_TRUE(converged);
+  EXPECT_FALSE(kept.refactored);
+  EXPECT_EQ(solver.factor().factorizations(), f0);
+  ASSERT_GT(kept.iterations, 10) << "the step's factor preconditions K too well for this test";
+
+  // Given up: the duals factorise K once and converge at once.
+  solver.invalidate();
+  Z.resize(0, 0);
+  const auto own = solver.solveWithFactor(s.mass_free, 0.0, 1.0, B, Z, 1e-8, set.max_iterations, converged);
+  ASSERT_TRUE(converged);
+  EXPECT_TRUE(own.refactored);
+  EXPECT_LE(own.iterations, 1);
+  EXPECT_EQ(solver.factor().factorizations(), f0 + 1);
+  EXPECT_LT((Z - K.ldlt().solve(B)).norm(), 1e-7 * Z.norm());
+  // The next dual call with that matrix (another target) reuses its factor.
+  Eigen::MatrixXd Z2;
+  const auto again = solver.solveWithFactor(s.mass_free, 0.0, 1.0, 2.0 * B, Z2, 1e-8, set.max_iterations, converged);
+  ASSERT_TRUE(converged);
+  EXPECT_FALSE(again.refactored);
+  EXPECT_LE(again.iterations, 1);
+  EXPECT_EQ(solver.factor().factorizations(), f0 + 1);
+  // The step's solve does not take K's factor for its matrix: it refactorises.
+  VecX y;
+  const auto step = solver.solve(s.mass_free, cm_step, ck_step, VecX::Ones(n), y);
+  EXPECT_TRUE(step.refactored);
+  EXPECT_LE(step.iterations, 1);
+  // And a dual call after it, on the step's current factor, takes it as it is again.
+  const auto after = solver.solveWithFactor(s.mass_free, 0.0, 1.0, B, Z, 1e-8, set.max_iterations, converged);
+  EXPECT_FALSE(after.refactored);
+}
+
 // A background refresh asked for compliance columns (the constraint solve's cached columns of
 // A^-1) computes them with its new factor: after the swap they are the new factor's columns,
 // tagged with its version, handed over once.

@@ -101,8 +101,10 @@ class SystemSolver {
   bool takeRefreshColumns(std::vector<int>& dofs, Eigen::MatrixXd& X, long& version);
   // Several right-hand sides of (c_m M + c_k K) X = B with CG preconditioned by the factor as
   // it is, whatever matrix it was made for (the dual problems of a goal-oriented estimate:
-  // the stiffness with the dynamic step's factor), never refactorising (a factor is made
-  // only if there is none yet). X, when it has B's shape, is the initial guess. Returns the
+  // the stiffness with the dynamic step's factor), not refactorising a factor in use (one is
+  // made only if there is none, or if the one at hand was given up by invalidate(); such a
+  // factor serves the next calls with the same c_m, c_k until the matrix changes, and the
+  // next solve() refactorises). X, when it has B's shape, is the initial guess. Returns the
   // iterations of the slowest column; converged false if a column missed the tolerance
   // within max_iterations.
   LinearSolveStats solveWithFactor(const VecX& mass_free, double c_m, double c_k, const Eigen::MatrixXd& B,
@@ -185,6 +187,10 @@ class SystemSolver {
   bool stale_ = true;          // refresh the factor (in the background if async)
   int fresh_iterations_ = 0;   // GMRES iterations of the first solve with the factor (nonsymmetric term)
   bool must_refactor_ = false;  // refactorise before this call's solve (the matrix changed)
+  // The factor is one solveWithFactor made for c_m M + c_k K (dual_c_m_, dual_c_k_) after an
+  // invalidate(), current until the matrix or the factor changes.
+  bool dual_factor_ = false;
+  double dual_c_m_ = 0, dual_c_k_ = 0;
   bool async_ = true;
   bool hold_ = false;
   long calls_ = 0, calls_since_factor_ = 0;

@@ -38,6 +38,9 @@ SystemSolver::SystemSolver(const SystemSolver& o, const CorotationalHexModel& mo
       version_(o.version_),
       stale_(o.stale_),
       must_refactor_(o.must_refactor_),
+      dual_factor_(o.dual_factor_),
+      dual_c_m_(o.dual_c_m_),
+      dual_c_k_(o.dual_c_k_),
       async_(o.async_),
       hold_(o.hold_),
       calls_(o.calls_),
@@ -68,6 +71,7 @@ void SystemSolver::dropRefresh() {
 void SystemSolver::invalidate() {
   dropRefresh();
   must_refactor_ = true;
+  dual_factor_ = false;
 }
 
 void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const {
@@ -107,6 +111,7 @@ void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, Linea
   st.factor_ms += msSince(t0);
   st.refactored = true;
   ++version_;
+  dual_factor_ = false;
   if (!ok)
     throw NumericalError(-1, "system matrix is not positive definite (are rigid motions "
                              "constrained? is the mesh inverted?)");
@@ -185,6 +190,7 @@ bool SystemSolver::finishRefresh(LinearSolveStats& st) {
   if (ok) {
     std::swap(chol_, r.factor);  // the old factor's buffers serve the next refresh
     ++version_;
+    dual_factor_ = false;
     columns_version_ = r.columns.size() > 0 ? version_ : -1;
     stale_ = false;
     calls_since_factor_ = calls_ - r.requested_call;
@@ -294,7 +300,13 @@ LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m
                                                Eigen::MatrixXd& X, double tolerance, int max_iterations,
                                                bool& converged) {
   LinearSolveStats st;
-  const bool own_factor = !chol_->factored();  // e.g. the first estimate on a new mesh, before any step
+  // A factor of its own when there is none (the first estimate on a new mesh, before any
+  // step) or when the one at hand was given up (invalidate(): a matrix with other terms, such
+  // as the brain shift's skull-contact blocks, whose factor preconditioned the shift's duals
+  // so poorly that CG took 190 iterations a column on dbs_fine, 9 s, against 1 after one
+  // factorisation).
+  const bool current = dual_factor_ && dual_c_m_ == c_m && dual_c_k_ == c_k;
+  const bool own_factor = !chol_->factored() || (must_refactor_ && !current);
   if (own_factor) refactor(mass_free, c_m, c_k, st);
   const auto t0 = steadyNow();
   auto A = [&](const VecX& v, VecX& out) { apply(mass_free, c_m, c_k, v, out); };
@@ -314,7 +326,12 @@ LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m
   // A factor made here is of this call's matrix (the dual's K), not of the step's A: the next
   // step must refactor rather than take it as its preconditioner, and the compliance cache
   // must not take its columns (they would be K^-1's, about h(h + beta) too small).
-  if (own_factor) must_refactor_ = true;
+  if (own_factor) {
+    must_refactor_ = true;
+    dual_factor_ = true;
+    dual_c_m_ = c_m;
+    dual_c_k_ = c_k;
+  }
   return st;
 }
 
