@@ -227,9 +227,9 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
               scene.name.c_str(), wall, pd.median, pd.max, pt.median, pt.p99, pt.p999, pt.max, misses, longest, passes,
               changes, pe.median, pm.median, pr.median, 100 * sum_adapt / std::max(sum_total, 1e-300));
   std::printf("p99.9 / median %.1f, max / median %.1f; deferred mesh changes %ld, switches that waited %ld; "
-              "background passes %ld, decisions waited for %ld\n",
+              "background passes %ld, decisions waited for %ld, passes due before a decision started after it %ld\n",
               pt.p999 / pt.median, pt.max / pt.median, sim.deferredRebuilds(), sim.rebuildWaits(),
-              sim.backgroundPasses(), sim.passWaits());
+              sim.backgroundPasses(), sim.passWaits(), sim.passesAfterDecision());
   if (o.slowest > 0) {
     // Where the worst steps' time went (the phases of StepStats; factor includes the needles').
     std::sort(slow.begin(), slow.end(), [](const Slow& a, const Slow& b) { return a.ms > b.ms; });
@@ -266,6 +266,7 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
                         {"rebuild_waits", sim.rebuildWaits()},
                         {"background_passes", sim.backgroundPasses()},
                         {"pass_waits", sim.passWaits()},
+                        {"passes_after_decision", sim.passesAfterDecision()},
                         {"target_error_ms", {{"passes", goal.size()}, {"median", pg.median}, {"max", pg.max},
                                              {"share", sum_goal / std::max(sum_total + sum_goal, 1e-300)},
                                              {"copy_median", pc.median}, {"copy_max", pc.max},

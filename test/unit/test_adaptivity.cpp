@@ -338,19 +338,24 @@ TEST(Adaptivity, DeferredMeshChangesSwitchAtTheirStepAndCarryTheState) {
 
 // Background passes (adaptivity.estimate_delay): the estimate, the marking and the new forest
 // are made on another thread from a copy of the pass's state, the decision taken up
-// estimate_delay later (or at the next pass due, waiting for it), a change switched to at the
-// step a pass on the stepping thread would have switched at. The run is that of passes on the
-// stepping thread, bit for bit, however late the background thread is; a copy taken while a
-// pass is under way steps as the original.
+// estimate_delay later, a change switched to at the step a pass on the stepping thread would
+// have switched at. A pass due before that at a touch or puncture takes the decision up at
+// once (waiting for it); one due at a new shaft point starts after it, at its step (since
+// 2026-12-04: waiting made the slowest steps). The run is the same bit for bit however late
+// the background thread is; a copy taken while a pass is under way steps as the original;
+// and the run is close to that of passes on the stepping thread (here, over the first
+// 1.25 s with three such passes, the same; deferring the puncture's pass too moved the
+// probes by 3.4 % of their largest displacement, which the 1 % check below catches).
 TEST(Adaptivity, BackgroundPassesDecideAsPassesOnTheSteppingThread) {
   struct Trace {
     std::vector<VecX> x;
-    long passes = 0, waits = 0, changes = 0;
+    std::vector<std::vector<Vec3>> probes;
+    long passes = 0, waits = 0, changes = 0, after_decision = 0;
   };
   auto run = [&](const std::string& estimate_delay, double late_ms, bool checks) {
     Simulation::setRebuildDelayForTesting(late_ms);
     Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml",
-                             {"time.duration=0.8", "adaptivity.rebuild_delay=0.007",
+                             {"time.duration=1.25", "adaptivity.rebuild_delay=0.007",
                               "adaptivity.estimate_delay=" + estimate_delay}));
     Trace tr;
     std::unique_ptr<Simulation> copy;
@@ -365,6 +370,8 @@ TEST(Adaptivity, BackgroundPassesDecideAsPassesOnTheSteppingThread) {
         if (!copy && sim.stepIndex() > 300) copy = std::make_unique<Simulation>(sim);
       }
       tr.x.push_back(sim.tissue().positions());
+      tr.probes.emplace_back();
+      for (int i = 0; i < sim.numProbes(); ++i) tr.probes.back().push_back(sim.probeDisplacement(i));
     }
     if (checks) {
       EXPECT_TRUE(copy != nullptr);
@@ -376,6 +383,7 @@ TEST(Adaptivity, BackgroundPassesDecideAsPassesOnTheSteppingThread) {
     tr.passes = sim.backgroundPasses();
     tr.waits = sim.passWaits();
     tr.changes = sim.deferredRebuilds();
+    tr.after_decision = sim.passesAfterDecision();
     Simulation::setRebuildDelayForTesting(0);
     return tr;
   };
@@ -383,16 +391,31 @@ TEST(Adaptivity, BackgroundPassesDecideAsPassesOnTheSteppingThread) {
   EXPECT_EQ(here.passes, 0);
   EXPECT_GT(background.passes, 20);
   ASSERT_GT(here.changes, 1);
-  EXPECT_EQ(background.changes, here.changes);
-  EXPECT_EQ(late.changes, here.changes);
+  EXPECT_GT(background.changes, 1);
+  EXPECT_EQ(late.changes, background.changes);
   EXPECT_GT(late.waits, 0) << "15 ms late passes must have been waited for";
-  ASSERT_EQ(background.x.size(), here.x.size());
-  ASSERT_EQ(late.x.size(), here.x.size());
-  for (size_t k = 0; k < here.x.size(); ++k) {
-    ASSERT_EQ(background.x[k].size(), here.x[k].size()) << "step " << k + 1;
-    ASSERT_EQ((background.x[k] - here.x[k]).lpNorm<Eigen::Infinity>(), 0.0) << "step " << k + 1;
-    ASSERT_EQ((late.x[k] - here.x[k]).lpNorm<Eigen::Infinity>(), 0.0) << "step " << k + 1;
+  // New shaft points within estimate_delay of a regular pass: those passes started after its
+  // decision, at the same steps however late the thread was.
+  EXPECT_EQ(here.after_decision, 0);
+  EXPECT_GT(background.after_decision, 0);
+  EXPECT_EQ(late.after_decision, background.after_decision);
+  ASSERT_EQ(late.x.size(), background.x.size());
+  for (size_t k = 0; k < background.x.size(); ++k) {
+    ASSERT_EQ(late.x[k].size(), background.x[k].size()) << "step " << k + 1;
+    ASSERT_EQ((late.x[k] - background.x[k]).lpNorm<Eigen::Infinity>(), 0.0) << "step " << k + 1;
   }
+  // Close to the passes on the stepping thread: the probes' displacements at every step,
+  // relative to the largest.
+  double d = 0, umax = 0;
+  long worst = -1;
+  for (size_t k = 0; k < here.probes.size(); ++k)
+    for (size_t i = 0; i < here.probes[k].size(); ++i) {
+      umax = std::max(umax, here.probes[k][i].norm());
+      const double dk = (background.probes[k][i] - here.probes[k][i]).norm();
+      if (dk > d) { d = dk; worst = static_cast<long>(k) + 1; }
+    }
+  std::printf("background against stepping-thread passes: probes differ by %.3g of the largest displacement at most (step %ld)\n", d / umax, worst);
+  EXPECT_LT(d, 0.01 * umax);
 }
 
 // The adaptive phantom insertion (theta 0.3, 2 levels over 8x4x4) against the uniform

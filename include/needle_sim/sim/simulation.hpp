@@ -103,6 +103,9 @@ class Simulation {
   bool passPending() const { return pending_pass_ != nullptr; }
   long backgroundPasses() const { return background_passes_; }
   long passWaits() const { return pass_waits_; }
+  // Passes that fell due at a new or released constraint point while a decision was still to
+  // be taken up, and started at its step instead.
+  long passesAfterDecision() const { return passes_after_decision_; }
   // Tests: every background mesh-change build, and every background pass's decision, takes at
   // least this long (late background work).
   static void setRebuildDelayForTesting(double ms);
@@ -295,7 +298,7 @@ class Simulation {
   std::vector<int> levels_;  // of the mesh in use
   int hanging_nodes_ = 0;
   long deferred_rebuilds_ = 0, rebuild_waits_ = 0;
-  long background_passes_ = 0, pass_waits_ = 0;
+  long background_passes_ = 0, pass_waits_ = 0, passes_after_decision_ = 0;
   mutable std::unique_ptr<SprEstimator> estimator_;  // bound to the current tissue body
   mutable ErrorEstimate estimate_;
   mutable long estimate_step_ = -1;
@@ -315,6 +318,7 @@ class Simulation {
   double qoi_radius_ = 0;                   // default radius: half the finest element's edge
   std::vector<int> goal_targets_;          // goal-oriented adaptivity: the targets it controls
   long contact_signature_ = 0;  // constraint counts and states at the last step
+  long contact_states_ = 0;     // the needles' states (touch, puncture) at the last step
   bool pass_due_ = false;       // an adaptation pass waits for a deferred mesh change
   long step_ = 0;
   long step_base_ = 0;     // time() = time_base_ + (step_ - step_base_) dt, so that dt may change

@@ -355,6 +355,7 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                        {"estimate_delay_s", a->settings().estimate_delay},
                        {"background_passes", sim_.backgroundPasses()},
                        {"pass_waits", sim_.passWaits()},
+                       {"passes_after_decision", sim_.passesAfterDecision()},
                        {"mesh_changes", mesh_changes_},
                        {"cells_refined_total", refined_total_},
                        {"cells_coarsened_total", coarsened_total_},
