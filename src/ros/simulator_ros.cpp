@@ -37,8 +37,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   setBlasThreads(P.blas_threads);  // OpenBLAS threads spin between the small per-step solves
   // Loading the scene comes before any step: its large factorisations may use more threads
   // (~setup_threads, 1 by default; 0: every core).
-  Simulation::setSetupThreads(P.setup_threads > 0 ? P.setup_threads
-                                                  : static_cast<int>(std::clamp(std::thread::hardware_concurrency(), 1u, 8u)));
+  Simulation::setSetupThreads(threadsOrEveryCore(P.setup_threads));
   scene_ = loadScene(P.scene_file, P.overrides);
   // A real-time loop takes a refreshed factor as soon as it is ready: no step waits for it
   // (doc/ros_api.md, ~deterministic_factor; the results then vary within the CG tolerance).

@@ -395,8 +395,7 @@ int main(int argc, char** argv) {
     auto args = withoutRosArgs(argc, argv);
     app.parse(args);
     setBlasThreads(blas_threads);
-    Simulation::setSetupThreads(setup_threads > 0 ? setup_threads
-                                                  : static_cast<int>(std::clamp(std::thread::hardware_concurrency(), 1u, 8u)));
+    Simulation::setSetupThreads(threadsOrEveryCore(setup_threads));
     scene_path = resolveScene(scene_path);
     bench_opts.scene = resolveScene(bench_opts.scene);
     pred.scene = resolveScene(pred.scene);

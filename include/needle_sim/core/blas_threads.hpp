@@ -7,10 +7,18 @@
 #include <dlfcn.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstdlib>
 #include <mutex>
+#include <thread>
 
 namespace needle_sim {
+
+// A thread count as the tool's and the node's options give it: n > 0 as is, 0 every core (at
+// most 8: OpenBLAS gains nothing beyond on these factors).
+inline int threadsOrEveryCore(int n) {
+  return n > 0 ? n : static_cast<int>(std::clamp(std::thread::hardware_concurrency(), 1u, 8u));
+}
 
 // Returns false when the BLAS offers no thread control. CHOLMOD's own OpenMP loops (when
 // libgomp is loaded) get the same number.
