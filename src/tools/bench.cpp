@@ -218,6 +218,7 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
     run = miss ? run + 1 : 0;
     longest = std::max(longest, run);
   }
+  const AdaptationCounters ac = sim.adaptationCounters();
   std::printf("needle_sim bench: %s, %ld steps%s (times in ms)\n", o.scene.c_str(), steps, o.pace ? ", paced at dt" : "");
   std::printf("| scene | wall s | DOFs median | DOFs max | step median | step p99 | step p99.9 | step max | steps > dt | "
               "longest run > dt | adapt passes | mesh changes | estimate median | mark+refine median | rebuild median | "
@@ -228,8 +229,8 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
               changes, pe.median, pm.median, pr.median, 100 * sum_adapt / std::max(sum_total, 1e-300));
   std::printf("p99.9 / median %.1f, max / median %.1f; deferred mesh changes %ld, switches that waited %ld; "
               "background passes %ld, decisions waited for %ld, passes due before a decision started after it %ld\n",
-              pt.p999 / pt.median, pt.max / pt.median, sim.deferredRebuilds(), sim.rebuildWaits(),
-              sim.backgroundPasses(), sim.passWaits(), sim.passesAfterDecision());
+              pt.p999 / pt.median, pt.max / pt.median, ac.deferred_rebuilds, ac.rebuild_waits, ac.background_passes, ac.pass_waits,
+              ac.passes_after_decision);
   if (o.slowest > 0) {
     // Where the worst steps' time went (the phases of StepStats; factor includes the needles').
     std::sort(slow.begin(), slow.end(), [](const Slow& a, const Slow& b) { return a.ms > b.ms; });
@@ -262,11 +263,11 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
                         {"step_ms", {{"median", pt.median}, {"p95", pt.p95}, {"p99", pt.p99}, {"p999", pt.p999},
                                      {"max", pt.max}, {"deadline_misses", misses}, {"longest_miss_run", longest}}},
                         {"paced", o.pace},
-                        {"deferred_mesh_changes", sim.deferredRebuilds()},
-                        {"rebuild_waits", sim.rebuildWaits()},
-                        {"background_passes", sim.backgroundPasses()},
-                        {"pass_waits", sim.passWaits()},
-                        {"passes_after_decision", sim.passesAfterDecision()},
+                        {"deferred_mesh_changes", ac.deferred_rebuilds},
+                        {"rebuild_waits", ac.rebuild_waits},
+                        {"background_passes", ac.background_passes},
+                        {"pass_waits", ac.pass_waits},
+                        {"passes_after_decision", ac.passes_after_decision},
                         {"target_error_ms", {{"passes", goal.size()}, {"median", pg.median}, {"max", pg.max},
                                              {"share", sum_goal / std::max(sum_total + sum_goal, 1e-300)},
                                              {"copy_median", pc.median}, {"copy_max", pc.max},

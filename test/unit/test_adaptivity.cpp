@@ -321,8 +321,8 @@ TEST(Adaptivity, DeferredMeshChangesSwitchAtTheirStepAndCarryTheState) {
         EXPECT_EQ((copy->tissue().positions() - sim.tissue().positions()).lpNorm<Eigen::Infinity>(), 0.0);
       }
     }
-    tr.deferred = sim.deferredRebuilds();
-    tr.waits = sim.rebuildWaits();
+    tr.deferred = sim.adaptationCounters().deferred_rebuilds;
+    tr.waits = sim.adaptationCounters().rebuild_waits;
     Simulation::setRebuildDelayForTesting(0);
     return tr;
   };
@@ -361,10 +361,10 @@ TEST(Adaptivity, BackgroundPassesDecideAsPassesOnTheSteppingThread) {
     std::unique_ptr<Simulation> copy;
     long started = -1;
     for (long k = 0; k < sim.scene().numSteps(); ++k) {
-      const long passes = sim.backgroundPasses();
+      const long passes = sim.adaptationCounters().background_passes;
       sim.step();
       if (copy) copy->step();
-      if (sim.backgroundPasses() > passes) started = sim.stepIndex();
+      if (sim.adaptationCounters().background_passes > passes) started = sim.stepIndex();
       if (checks && sim.passPending()) {
         EXPECT_LT(sim.stepIndex(), started + 5) << "a decision is taken up 5 steps (5 ms) after its pass at the latest";
         if (!copy && sim.stepIndex() > 300) copy = std::make_unique<Simulation>(sim);
@@ -380,10 +380,10 @@ TEST(Adaptivity, BackgroundPassesDecideAsPassesOnTheSteppingThread) {
         EXPECT_EQ((copy->tissue().positions() - sim.tissue().positions()).lpNorm<Eigen::Infinity>(), 0.0);
       }
     }
-    tr.passes = sim.backgroundPasses();
-    tr.waits = sim.passWaits();
-    tr.changes = sim.deferredRebuilds();
-    tr.after_decision = sim.passesAfterDecision();
+    tr.passes = sim.adaptationCounters().background_passes;
+    tr.waits = sim.adaptationCounters().pass_waits;
+    tr.changes = sim.adaptationCounters().deferred_rebuilds;
+    tr.after_decision = sim.adaptationCounters().passes_after_decision;
     Simulation::setRebuildDelayForTesting(0);
     return tr;
   };

@@ -35,4 +35,8 @@ struct AdaptivitySettings {
   int coarsen_after = 3;        // ... at this many consecutive estimates (hysteresis)
 };
 
+// A static solve on an adaptive mesh (a load step, the brain shift) alternates solve and
+// adaptation pass until the mesh stays as it is, at most this many passes.
+constexpr int kMaxStaticAdaptationPasses = 6;
+
 }  // namespace needle_sim

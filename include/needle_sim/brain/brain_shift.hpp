@@ -89,6 +89,13 @@ class BrainShift {
   ElementBlocks supportStiffness(const EmbeddedSurface& organ) const;
   VecX supportAnchorLoad(const TissueBody& body, const EmbeddedSurface& organ) const;
   bool hasSupport() const { return settings_.skull_support && skull_ && skull_->touching(); }
+  // After the pre-step, the loads that outlive a mesh change, applied to `body` on any mesh
+  // (organ: the organ surface embedded in it, or nullptr): the shift's gravity at load_scale,
+  // the frozen skull reactions and the support springs. Reads the frozen state only: callable
+  // from any thread (a mesh change built in the background).
+  void applyPersistentLoads(TissueBody& body, const EmbeddedSurface* organ, double load_scale) const;
+  // The support springs alone (hasSupport), on `body`.
+  void applySupport(TissueBody& body, const EmbeddedSurface* organ) const;
 
  private:
   BrainShiftSettings settings_;

@@ -51,7 +51,7 @@ struct InteractionStats {
 
 // What the interaction looks up on a tissue mesh (its surface, a locator by rest position,
 // the elements around each node): it depends on the mesh only, so a mesh change builds it
-// with the new body, off the stepping thread (Simulation::prepareTissue), and the switch
+// with the new body, off the stepping thread (AdaptiveTissue::prepare), and the switch
 // only takes it (rebind).
 struct TissueBinding {
   std::unique_ptr<TissueSurface> surface;

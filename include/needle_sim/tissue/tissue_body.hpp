@@ -104,7 +104,7 @@ class TissueBody {
 
   // Sets positions/velocities (tests, restarts); prescribed DOFs are kept.
   // A fresh body made ready off the stepping thread (a deferred mesh change,
-  // Simulation::startRebuild): the factor of the dynamic step of size h at the current state,
+  // AdaptiveTissue::prepare): the factor of the dynamic step of size h at the current state,
   // and the compliance columns of the free DOFs of `elements` (where the constraint points
   // are), so that its first steps need neither.
   void prepareForSteps(double h, const std::vector<int>& elements);

@@ -229,4 +229,17 @@ VecX BrainShift::supportAnchorLoad(const TissueBody& body, const EmbeddedSurface
   return hasSupport() ? skull_->supportAnchorLoad(body.mesh(), organ) : VecX::Zero(body.mesh().numDofs());
 }
 
+void BrainShift::applySupport(TissueBody& body, const EmbeddedSurface* organ) const {
+  if (!organ || !hasSupport()) return;
+  body.setSupport(supportStiffness(*organ));
+  body.addExternalForce(supportAnchorLoad(body, *organ));
+}
+
+void BrainShift::applyPersistentLoads(TissueBody& body, const EmbeddedSurface* organ, double load_scale) const {
+  VecX f = load_scale * unitLoad(body);
+  if (organ) f += skullLoad(body, *organ);
+  body.addExternalForce(f);
+  applySupport(body, organ);
+}
+
 }  // namespace needle_sim

@@ -63,7 +63,7 @@ SteeringPlan planSteering(const Simulation& live, const SteeringRequest& req) {
     throw InputError("", "steer.max_predictions", "must be in [1, 100]");
   if (!req.target.allFinite()) throw InputError("", "steer.target", "must be finite");
   // The target must be tissue (rest position; the planner runs before the insertion).
-  live.embedPoint(PointLocator(live.tissue().mesh()), req.target, "", "steer.target", "the target");
+  live.embedPoint(req.target, "steer.target", "the target");
 
   const BasePose p0 = nd.trajectory().pose(live.time());
   const Vec3 a = p0.direction.normalized();

@@ -1,0 +1,110 @@
+#include "needle_sim/sim/target_error_estimator.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+namespace needle_sim {
+
+TargetErrorEstimator::TargetErrorEstimator(const TargetErrorEstimator& o)
+    : default_radius_(o.default_radius_),
+      errors_(o.errors_),
+      steps_(o.steps_.size(), -1),
+      errors_step_(-1),
+      ever_(o.ever_),
+      last_step_(o.last_step_),
+      shift_errors_(o.shift_errors_) {}
+
+void TargetErrorEstimator::forget() {
+  qois_.clear();
+  duals_.clear();
+  errors_step_ = -1;
+  goal_primal_step_ = -1;
+  steps_.assign(steps_.size(), -1);
+}
+
+void TargetErrorEstimator::targetsChanged() {
+  qois_.clear();
+  steps_.assign(steps_.size(), -1);
+}
+
+const TargetError& TargetErrorEstimator::of(int i, const TargetErrorState& s) {
+  const size_t n = s.points.numTargets();
+  if (errors_.size() != n || steps_.size() != n) {
+    errors_.resize(n);
+    steps_.resize(n, -1);
+  }
+  if (steps_[i] == s.step && errors_step_ != -1) return errors_[i];
+  const HexMesh& mesh = s.body.mesh();
+  if (qois_.size() != n) {
+    const PointLocator locator(mesh);
+    qois_.clear();
+    for (int k = 0; k < static_cast<int>(n); ++k)
+      qois_.push_back(targetQoi(mesh, locator, s.points.target(k).planned, radius(k, s.points)));
+  }
+  // The field the estimate is of: the change since the brain shift when there was one (the
+  // insertion's), else the displacement from rest. On an adaptive mesh that is also the SPR
+  // estimate's reference; on a uniform one the primal estimate is made for it here.
+  const VecX* reference = s.energy.reference();
+  const VecX* ref = reference ? reference : s.shifted;
+  const ErrorEstimate* primal = &s.energy.localErrors();  // (and the fits for this mesh)
+  if (ref && ref != reference) {
+    if (goal_primal_step_ != s.step) {
+      goal_primal_ = s.energy.spr().estimate(s.body.positions(), ref);
+      goal_primal_step_ = s.step;
+    }
+    primal = &goal_primal_;
+  }
+  if (duals_.size() != n) duals_.resize(n);
+  Eigen::MatrixXd& Z = duals_[i];  // the last pass's on this mesh: CG starts from it
+  int iterations = 0;
+  TargetError e;
+  if (s.body.solveDual(qois_[i].load(mesh), Z, iterations))
+    e = goalEstimate(s.energy.spr(), s.body.positions(), ref, *primal, Z, qois_[i], mesh, mesh.restPositions());
+  e.dual_iterations = iterations;
+  // After a brain shift the estimate is of the change since; the shift's own error adds
+  // (errors add, so do their bounds). A shift scaled by target_shift prescribes that
+  // target's displacement: its error is in the load scale, not added.
+  if (e.valid && ref && i < static_cast<int>(shift_errors_.size()) && shift_errors_[i].valid) {
+    e.estimate += shift_errors_[i].estimate;
+    e.component_bound += shift_errors_[i].component_bound;
+    e.bound += shift_errors_[i].bound;
+  }
+  if (e.valid && ref && i < static_cast<int>(shift_errors_.size())) e.qoi += shift_errors_[i].qoi;
+  errors_[i] = std::move(e);
+  steps_[i] = s.step;
+  errors_step_ = s.step;
+  last_step_ = s.step;
+  ever_ = true;
+  return errors_[i];
+}
+
+const std::vector<TargetError>& TargetErrorEstimator::all(const TargetErrorState& s) {
+  for (int i = 0; i < s.points.numTargets(); ++i) of(i, s);
+  return errors_;
+}
+
+const ErrorEstimate& GoalErrorEstimator::localErrors() {
+  const ErrorEstimate& est = energy_.localErrors();
+  goal_ = ErrorEstimate{};
+  goal_.eta.assign(est.eta.size(), 0.0);
+  refine_ = false;
+  for (int t : targets_) {
+    const TargetError& e = target_error_(t);
+    if (!e.valid) {
+      refine_ = true;  // no estimate: fall back on the energy estimate's pattern
+      for (size_t k = 0; k < goal_.eta.size(); ++k) goal_.eta[k] += est.eta[k] / std::max(est.max, 1e-300);
+      continue;
+    }
+    refine_ = refine_ || e.bound > tolerance_;
+    for (size_t k = 0; k < goal_.eta.size(); ++k) goal_.eta[k] += e.indicator[k] / tolerance_;
+  }
+  double sum = 0;
+  for (double v : goal_.eta) {
+    goal_.max = std::max(goal_.max, v);
+    sum += v * v;
+  }
+  goal_.global = std::sqrt(sum);
+  return goal_;
+}
+
+}  // namespace needle_sim
