@@ -12,18 +12,34 @@
 
 namespace needle_sim {
 
+namespace {
+// A subscription whose callback gets the message and its publisher's caller id (the
+// connection header's "callerid": the source for rule owner).
+template <class M, class F>
+ros::Subscriber subscribeWithCaller(ros::NodeHandle& nh, const std::string& topic, uint32_t queue, F f) {
+  using Event = const ros::MessageEvent<M const>&;
+  const boost::function<void(Event)> cb = [f](Event e) { f(e.getMessage(), e.getPublisherName()); };
+  return nh.subscribe<M, Event>(topic, queue, cb);
+}
+}  // namespace
+
 void SimulatorRos::subscribeCommands() {
   if (params_->command_source != "topic") return;
   for (int i = 0; i < static_cast<int>(scene_.needles.size()); ++i) {
     const std::string& name = scene_.needles[i].name;
-    command_subs_.push_back(pnh_.subscribe<geometry_msgs::PoseStamped>(
-        name + "/command_pose", 100, [this, i](const geometry_msgs::PoseStamped::ConstPtr& m) { onPose(i, m); }));
-    command_subs_.push_back(pnh_.subscribe<needle_sim::NeedleTrajectory>(
-        name + "/command_trajectory", 10,
-        [this, i](const needle_sim::NeedleTrajectory::ConstPtr& m) { onTrajectory(i, m); }));
-    command_subs_.push_back(pnh_.subscribe<trajectory_msgs::MultiDOFJointTrajectory>(
-        name + "/multi_dof_trajectory", 10,
-        [this, i](const trajectory_msgs::MultiDOFJointTrajectory::ConstPtr& m) { onMultiDof(i, m); }));
+    command_subs_.push_back(subscribeWithCaller<geometry_msgs::PoseStamped>(
+        pnh_, name + "/command_pose", 100,
+        [this, i](const geometry_msgs::PoseStamped::ConstPtr& m, const std::string& caller) { onPose(i, m, caller); }));
+    command_subs_.push_back(subscribeWithCaller<needle_sim::NeedleTrajectory>(
+        pnh_, name + "/command_trajectory", 10,
+        [this, i](const needle_sim::NeedleTrajectory::ConstPtr& m, const std::string& caller) {
+          onTrajectory(i, m, caller);
+        }));
+    command_subs_.push_back(subscribeWithCaller<trajectory_msgs::MultiDOFJointTrajectory>(
+        pnh_, name + "/multi_dof_trajectory", 10,
+        [this, i](const trajectory_msgs::MultiDOFJointTrajectory::ConstPtr& m, const std::string& caller) {
+          onMultiDof(i, m, caller);
+        }));
   }
 }
 
@@ -87,13 +103,13 @@ void SimulatorRos::admit(int needle, const PoseCommand& c, const std::string& so
   if (params_->as_fast_as_possible) cmd.stamp = std::numeric_limits<double>::quiet_NaN();  // stamps mean nothing then
   const Admission a = guard_->admit(needle, cmd, now);
   if (!a.accepted) {
-    warnRule(a.rule, source, a.reason);
+    warnRule(a.rule, c.source.empty() ? source : source + " from " + c.source, a.reason);
     return;
   }
   commands_.emplace_back(needle, a);
 }
 
-void SimulatorRos::onPose(int needle, const geometry_msgs::PoseStamped::ConstPtr& m) {
+void SimulatorRos::onPose(int needle, const geometry_msgs::PoseStamped::ConstPtr& m, const std::string& caller) {
   const std::string source = "~" + scene_.needles[needle].name + "/command_pose";
   Rigid to_tissue;
   if (!toTissue(m->header.frame_id, m->header.stamp, source, to_tissue)) return;
@@ -102,18 +118,21 @@ void SimulatorRos::onPose(int needle, const geometry_msgs::PoseStamped::ConstPtr
     std::lock_guard<std::mutex> lk(queue_mutex_);
     stamp = simSeconds(m->header.stamp);
   }
-  admit(needle, toCommand(m->pose, to_tissue, stamp), source);
+  PoseCommand c = toCommand(m->pose, to_tissue, stamp);
+  c.source = caller;
+  admit(needle, c, source);
 }
 
-void SimulatorRos::onTrajectory(int needle, const needle_sim::NeedleTrajectory::ConstPtr& m) {
-  const std::string source = "~" + scene_.needles[needle].name + "/command_trajectory";
+void SimulatorRos::onTrajectory(int needle, const needle_sim::NeedleTrajectory::ConstPtr& m, const std::string& caller) {
+  const std::string source = "~" + scene_.needles[needle].name + "/command_trajectory from " + caller;
   Rigid to_tissue;
   if (!toTissue(m->header.frame_id, m->header.stamp, source, to_tissue)) return;
-  queuePlan({needle, toWaypoints(*m, to_tissue), source, {}});
+  queuePlan({needle, toWaypoints(*m, to_tissue), source, {}, caller});
 }
 
-void SimulatorRos::onMultiDof(int needle, const trajectory_msgs::MultiDOFJointTrajectory::ConstPtr& m) {
-  const std::string source = "~" + scene_.needles[needle].name + "/multi_dof_trajectory";
+void SimulatorRos::onMultiDof(int needle, const trajectory_msgs::MultiDOFJointTrajectory::ConstPtr& m,
+                              const std::string& caller) {
+  const std::string source = "~" + scene_.needles[needle].name + "/multi_dof_trajectory from " + caller;
   Rigid to_tissue;
   if (!toTissue(m->header.frame_id, m->header.stamp, source, to_tissue)) return;
   std::vector<PlanWaypoint> w;
@@ -123,7 +142,7 @@ void SimulatorRos::onMultiDof(int needle, const trajectory_msgs::MultiDOFJointTr
     warnRule(GuardRule::Plan, source, why);
     return;
   }
-  queuePlan({needle, std::move(w), source, {}});
+  queuePlan({needle, std::move(w), source, {}, caller});
 }
 
 void SimulatorRos::lookupTfCommands() {
@@ -155,7 +174,9 @@ void SimulatorRos::lookupTfCommands() {
       std::lock_guard<std::mutex> lk(queue_mutex_);
       stamp = simSeconds(tr.header.stamp);
     }
-    admit(i, toCommand(p, Rigid{}, stamp), source);
+    PoseCommand c = toCommand(p, Rigid{}, stamp);
+    c.source = "tf";  // every base pose from tf is one source: whoever broadcasts the frame
+    admit(i, c, source);
   }
 }
 

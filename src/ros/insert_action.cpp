@@ -1,5 +1,6 @@
 #include "insert_action.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 
@@ -18,9 +19,12 @@ InsertAction::InsertAction(SimulatorRos& node, ros::NodeHandle& pnh, double defa
   server_.start();
 }
 
+void InsertAction::release(const Active& a) { node_.guard_->release(a.needle, kHolder); }
+
 void InsertAction::shutdown() {
   std::lock_guard<std::mutex> lk(mutex_);
   if (active_) {
+    release(*active_);
     needle_sim::InsertNeedleResult r;
     r.message = "the node shuts down";
     active_->gh.setAborted(r, r.message);
@@ -38,6 +42,7 @@ needle_sim::InsertNeedleResult InsertAction::result(const Active& a, const Obser
                                                                  : std::numeric_limits<double>::quiet_NaN();
   r.inserted = (n.base - a.base0).dot(a.axis);
   r.state = toString(n.state);
+  r.max_tip_speed = a.max_tip_speed;
   r.message = msg;
   return r;
 }
@@ -47,7 +52,8 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
   needle_sim::InsertNeedleResult rejected;
   auto reject = [&](const std::string& why) {
     rejected.message = why;
-    rejected.final_distance = rejected.error_bound = rejected.inserted = std::numeric_limits<double>::quiet_NaN();
+    rejected.final_distance = rejected.error_bound = rejected.inserted = rejected.max_tip_speed =
+        std::numeric_limits<double>::quiet_NaN();
     ROS_WARN("needle_sim: ~insert goal rejected: %s", why.c_str());
     gh.setRejected(rejected, why);
   };
@@ -100,8 +106,17 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
     if (!why.empty()) return reject("the motion breaks a limit: " + why);
     a.duration = w.time;
     std::lock_guard<std::mutex> lk(mutex_);
+    // One source at a time: the goal holds the needle until it ends (a goal under way on
+    // this needle is the same holder; its preemption below keeps the hold).
+    std::string owner_why;
+    if (!node_.guard_->hold(needle, kHolder, now, owner_why)) {
+      node_.warnRule(GuardRule::Owner, "~insert goal", owner_why);
+      return reject("owner: " + owner_why);
+    }
+    plan.owner = kHolder;
     if (active_) {  // a new goal preempts the one under way (its plan is replaced)
       needle_sim::InsertNeedleResult r = result(*active_, node_.obs_, "preempted by a new goal");
+      if (active_->needle != needle) release(*active_);
       auto old = active_->gh;
       node_.out_->post([old, r]() mutable { old.setCanceled(r, r.message); });
     }
@@ -118,6 +133,7 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
       return;
     }
     needle_sim::InsertNeedleResult r = result(*active_, node_.obs_, "the motion breaks a limit: " + why);
+    release(*active_);
     auto h = active_->gh;
     active_.reset();
     node_.out_->post([h, r]() mutable { h.setAborted(r, r.message); });
@@ -131,6 +147,7 @@ void InsertAction::onCancel(Server::GoalHandle gh) {
   if (!active_ || active_->gh.getGoalID().id != gh.getGoalID().id) return;
   node_.holdNeedle(active_->needle);  // the needle holds where it is
   const needle_sim::InsertNeedleResult r = result(*active_, node_.obs_, "preempted: the needle holds");
+  release(*active_);
   active_->gh.setCanceled(r, r.message);
   active_.reset();
 }
@@ -139,6 +156,7 @@ void InsertAction::superseded(int needle, const std::string& by) {
   std::lock_guard<std::mutex> lk(mutex_);
   if (!active_ || active_->needle != needle) return;
   const needle_sim::InsertNeedleResult r = result(*active_, node_.obs_, "aborted: " + by + " took over the needle");
+  release(*active_);
   auto h = active_->gh;
   active_.reset();
   node_.out_->post([h, r]() mutable { h.setAborted(r, r.message); });
@@ -148,6 +166,8 @@ void InsertAction::update(const Observables& o) {
   std::lock_guard<std::mutex> lk(mutex_);
   if (!active_ || !active_->taken) return;
   Active& a = *active_;
+  if (a.needle < node_.tip_speed_.numNeedles())
+    a.max_tip_speed = std::max(a.max_tip_speed, node_.tip_speed_.speed(a.needle));
   if (a.target >= static_cast<int>(o.targets.size())) return;  // (a reset removed it: failed() ends the goal)
   const NeedleObservation& n = o.needles[a.needle];
   const Vec3 target = a.target >= 0 ? o.targets[a.target].position : a.point;
@@ -155,6 +175,7 @@ void InsertAction::update(const Observables& o) {
   const double end = std::max(a.end, node_.sim_->needle(a.needle).trajectory().lastTime());
   if (o.time >= end - 1e-9) {
     needle_sim::InsertNeedleResult r = result(a, o, "inserted");
+    release(a);
     auto h = a.gh;
     active_.reset();
     node_.out_->post([h, r]() mutable { h.setSucceeded(r, r.message); });
@@ -168,6 +189,7 @@ void InsertAction::update(const Observables& o) {
   fb.force = toVector(n.holder_force_base);
   fb.axial_force = n.holder_force_base.x();
   fb.state = toString(n.state);
+  fb.max_tip_speed = a.max_tip_speed;
   auto h = a.gh;
   node_.out_->post([h, fb]() mutable { h.publishFeedback(fb); });
 }
@@ -178,6 +200,8 @@ void InsertAction::abort(const std::string& why) {
   needle_sim::InsertNeedleResult r;
   r.message = why;
   r.final_distance = r.error_bound = r.inserted = std::numeric_limits<double>::quiet_NaN();
+  r.max_tip_speed = active_->max_tip_speed;
+  release(*active_);
   auto h = active_->gh;
   active_.reset();
   node_.out_->post([h, r]() mutable { h.setAborted(r, r.message); });

@@ -5,7 +5,9 @@
 // time; preempted (cancel, or a new goal), the needle holds where it is. The motion is a
 // plan the command guard checks like any other. Goal handles are only touched from the
 // callback threads and the output thread, never under the simulation's lock (actionlib
-// calls back with its own lock held).
+// calls back with its own lock held). A goal holds its needle (command guard, rule owner):
+// it is rejected while another source commands the needle, and while it runs, commands from
+// any other source are rejected; it gives the needle back when it ends.
 #include <actionlib/server/action_server.h>
 #include <needle_sim/InsertNeedleAction.h>
 
@@ -44,8 +46,12 @@ class InsertAction {
     double duration = 0;  // of the motion [s]
     double end = 0;       // simulation time it ends (known once the plan is taken)
     double last_feedback = -1;
+    double max_tip_speed = 0;  // observed over the goal's steps
     bool taken = false;
   };
+  // The goal holds its needle (rule owner) from acceptance until it ends, whatever ends it.
+  static constexpr const char* kHolder = "~insert";
+  void release(const Active& a);
   needle_sim::InsertNeedleResult result(const Active& a, const Observables& o, const std::string& msg) const;
   SimulatorRos& node_;
   double default_speed_;

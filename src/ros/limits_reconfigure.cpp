@@ -1,5 +1,7 @@
 #include "limits_reconfigure.hpp"
 
+#include <cmath>
+
 #include "needle_sim/core/error.hpp"
 
 namespace needle_sim {
@@ -21,10 +23,12 @@ void LimitsReconfigure::onChange(needle_sim::LimitsConfig& c, uint32_t) {
   l.quaternion_tolerance = c.quaternion_tolerance;
   l.workspace_margin = c.workspace_margin;
   try {
-    if (!(c.display_rate > 0)) throw InputError("", "~display_rate", "must be > 0");
-    guard_.setLimits(l);
+    if (!(c.display_rate > 0) || !std::isfinite(c.display_rate))
+      throw InputError("", "~display_rate", "must be > 0 and finite");
+    guard_.setLimits(l);  // checked as at start-up and against the ceilings
   } catch (const InputError& e) {
-    ROS_ERROR("needle_sim: reconfigure refused, the limits stay as they were: %s", e.what());
+    ROS_ERROR("needle_sim: reconfigure refused whole, the limits stay as they were and are sent back to the caller: %s",
+              e.what());
     {
       std::lock_guard<std::mutex> lk(refusal_mutex_);
       last_refusal_ = e.what();

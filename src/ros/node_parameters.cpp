@@ -93,7 +93,16 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   pnh.param("quaternion_tolerance", l.quaternion_tolerance, l.quaternion_tolerance);
   pnh.param("workspace_margin", l.workspace_margin, l.workspace_margin);
   pnh.param("command_latency", l.command_latency, l.command_latency);
+  pnh.param("owner_timeout", l.owner_timeout, l.owner_timeout);
   l.validate();
+  LimitCeilings& c = p.ceilings;
+  for (const CeiledLimit& k : kCeiledLimits)
+    pnh.param(std::string(k.name) + "_ceiling", c.*k.ceiling, c.*k.ceiling);  // start-up only
+  c.validate();
+  c.check(l);
+  pnh.param("max_tip_speed", p.max_tip_speed, p.max_tip_speed);
+  if (!(p.max_tip_speed >= 0) || !std::isfinite(p.max_tip_speed))
+    throw InputError("", "~max_tip_speed", "must be >= 0 and finite (0: 4 times ~max_speed)");
 
   pnh.param("as_fast_as_possible", p.as_fast_as_possible, p.as_fast_as_possible);
   pnh.param("display_rate", p.display_rate, p.display_rate);
@@ -121,6 +130,9 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   if (!(p.predict_sample_period > 0) || !std::isfinite(p.predict_sample_period))
     throw InputError("", "~predict_sample_period", "must be > 0");
   if (p.predict_max_steps < 1) throw InputError("", "~predict_max_steps", "must be >= 1");
+  pnh.param("predict_max_dt", p.predict_max_dt, p.predict_max_dt);
+  if (!(p.predict_max_dt >= 0) || !std::isfinite(p.predict_max_dt))
+    throw InputError("", "~predict_max_dt", "must be >= 0 and finite (0: 10 times the scene's dt)");
   pnh.param("insert_speed", p.insert_speed, p.insert_speed);
   if (!(p.insert_speed > 0) || !(p.insert_speed <= l.max_speed))
     throw InputError("", "~insert_speed", "must be in (0, ~max_speed]");

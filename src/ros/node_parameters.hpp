@@ -27,6 +27,12 @@ struct NodeParameters {
   bool allow_empty_frame = false;        // an empty frame_id means ~tissue_frame
   std::string wrench_frame = "base";     // base (<needle>_base) | tissue
   CommandLimits limits;                  // workspace box filled from the scene
+  // ~<limit>_ceiling: start-up only; no limit above them, at start-up or by reconfigure.
+  LimitCeilings ceilings;
+  // ~max_tip_speed [m/s]: a tip faster than this over a step is warned about (diagnostics
+  // tip_speed); 0 (the default): 4 times the current ~max_speed, following reconfigure (a
+  // puncture at the speed limit moved the tip at up to 2.8 times it; the snap of #39: 32 times).
+  double max_tip_speed = 0;
   bool as_fast_as_possible = false;
   double display_rate = 30;
   double display_range = 0;   // [m] top of the colour scale; 0: adapts slowly to the motion
@@ -42,6 +48,9 @@ struct NodeParameters {
   // deadlines on a loaded machine; without the privilege the node warns and runs on.
   int realtime_priority = 0;
   double predict_dt = 0.01, predict_sample_period = 0.05;
+  // ~predict_max_dt [s]: the coarsest time step a ~predict or ~steer request may ask for;
+  // 0 (the default): 10 times the scene's dt (resolved once the scene is loaded).
+  double predict_max_dt = 0;
   int predict_max_steps = 100000;
   double insert_speed = 0.005;          // [m/s] default speed of ~insert goals
   double target_error_period = 0.2;     // [s] goal-oriented error bound of the targets this often (0: off)

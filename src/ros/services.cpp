@@ -64,6 +64,7 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
   const auto w0 = ros::WallTime::now();
   res.success = false;
   res.final_target_tip_distance = std::numeric_limits<double>::quiet_NaN();
+  res.max_tip_speed = res.max_tip_speed_time = std::numeric_limits<double>::quiet_NaN();
   auto refuse = [&](const std::string& why) {
     res.message = why;
     ROS_WARN("needle_sim: predict refused: %s", why.c_str());
@@ -72,6 +73,11 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
   const int needle = needleIndex(req.needle);
   if (needle < 0) return refuse("needle: no needle named '" + req.needle + "'");
   if (!std::isfinite(req.dt) || req.dt < 0) return refuse("dt: must be finite and >= 0");
+  if (req.dt > predict_max_dt_)
+    return refuse("dt: " + std::to_string(req.dt) + " s is coarser than ~predict_max_dt = " +
+                  std::to_string(predict_max_dt_) + " s (by default 10 times the scene's dt " +
+                  std::to_string(scene_.dt) + " s, or ~predict_dt if larger): the holder force and the tip's track "
+                  "mean nothing at such a step");
   if (!std::isfinite(req.sample_period) || req.sample_period < 0) return refuse("sample_period: must be finite and >= 0");
   InsertionPlan plan;
   plan.needle = needle;
@@ -121,13 +127,15 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
     }
   }
   if (target >= 0) res.final_target_tip_distance = res.target_tip_distance.back();
+  res.max_tip_speed = p.max_tip_speed;
+  res.max_tip_speed_time = p.max_tip_speed_t;
   res.steps = p.steps;
   res.max_dofs = p.max_dofs;
   res.compute_time = (ros::WallTime::now() - w0).toSec();
   res.success = true;
-  char buf[160];
-  std::snprintf(buf, sizeof buf, "predicted %.3g s in %d steps of %.3g s (%.3f s wall)", p.samples.back().t, p.steps,
-                plan.dt, res.compute_time);
+  char buf[200];
+  std::snprintf(buf, sizeof buf, "predicted %.3g s in %d steps of %.3g s (%.3f s wall); largest tip speed %.3g m/s at %.3g s",
+                p.samples.back().t, p.steps, plan.dt, res.compute_time, p.max_tip_speed, p.max_tip_speed_t);
   res.message = buf;
   return true;
 }

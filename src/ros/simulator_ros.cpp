@@ -53,6 +53,13 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   tf_last_stamp_.assign(scene_.needles.size(), ros::Time(0));
   tf_missing_.assign(scene_.needles.size(), 0);
   schedule_ = RealtimeSchedule(scene_.dt);
+  // The coarsest step a prediction may take (doc/ros_api.md, ~predict_max_dt).
+  predict_max_dt_ = P.predict_max_dt > 0 ? P.predict_max_dt : std::max(10 * scene_.dt, P.predict_dt);
+  if (P.predict_dt > predict_max_dt_)
+    throw InputError("", "~predict_dt", "must not exceed ~predict_max_dt = " + std::to_string(predict_max_dt_) + " s");
+  tip_speed_peak_.assign(scene_.needles.size(), 0.0);
+  tip_speed_over_.assign(scene_.needles.size(), 0);
+  diag_tip_over_.assign(scene_.needles.size(), 0);
   load();
   // A later load (~reset) may come while prediction and error threads run BLAS: it keeps
   // the steps' thread count (changing it under running BLAS calls is not safe).
@@ -70,6 +77,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   updater_ = std::make_unique<diagnostic_updater::Updater>(nh_, pnh_);
   updater_->setHardwareID("needle_sim/" + scene_.name);
   updater_->add("simulation", this, &SimulatorRos::diagnose);
+  updater_->add("tip_speed", this, &SimulatorRos::diagnoseTipSpeed);
   diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) { updater_->update(); });
   subscribeCommands();
   reset_srv_ = pnh_.advertiseService("reset", &SimulatorRos::onReset, this);
@@ -82,10 +90,14 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
         },
         ros::VoidConstPtr(), &predict_queue_);
     predict_srv_ = pnh_.advertiseService(o);
-    ros::AdvertiseServiceOptions so = ros::AdvertiseServiceOptions::create<needle_sim::SteerToTarget>(
-        "steer",
-        [this](needle_sim::SteerToTarget::Request& q, needle_sim::SteerToTarget::Response& r) { return onSteer(q, r); },
-        ros::VoidConstPtr(), &predict_queue_);
+    // ~steer with the caller's id: an executed plan is that caller's command (rule owner).
+    using SteerEvent = ros::ServiceEvent<needle_sim::SteerToTarget::Request, needle_sim::SteerToTarget::Response>;
+    ros::AdvertiseServiceOptions so;
+    so.initBySpecType<SteerEvent>("steer", [this](SteerEvent& e) {
+      needle_sim::SteerToTarget::Request q = e.getRequest();
+      return onSteer(q, e.getResponse(), e.getCallerName());
+    });
+    so.callback_queue = &predict_queue_;
     steer_srv_ = pnh_.advertiseService(so);
     predict_spinner_ = std::make_unique<ros::AsyncSpinner>(1, &predict_queue_);
     predict_spinner_->start();
@@ -153,7 +165,7 @@ void SimulatorRos::load() {
   if (!guard_) {
     std::vector<CommandGuard::NeedleInfo> info;
     for (const auto& n : scene_.needles) info.push_back({{n.base_position, n.base_direction, n.base_roll}, n.length});
-    guard_ = std::make_unique<CommandGuard>(limits, std::move(info));
+    guard_ = std::make_unique<CommandGuard>(limits, std::move(info), params_->ceilings);
   } else {
     guard_->setLimits(limits);
     guard_->restart();
@@ -166,6 +178,8 @@ void SimulatorRos::load() {
     origin_ = ros::Time(0);  // restarted by the next tick
   }
   failure_.clear();
+  tip_speed_.reset();
+  tip_speed_.observe(*sim_);  // the tips at the start: the first step is measured from them
   commanded_ = false;
   primary_target_ = 0;
   step_ms_max_ = 0;
@@ -311,10 +325,18 @@ void SimulatorRos::applyCommands() {
   for (auto& p : plans) {
     BaseTrajectory& traj = sim_->needle(p.needle).trajectory();
     PlanPoses poses;
-    const std::string why = guard_->checkPlan(p.needle, p.waypoints, traj.pose(now), dt, inserted(p.needle), poses);
+    std::string why;
+    // One source at a time: a plan from another than the needle's owner is refused whole.
+    if (!p.owner.empty() && !guard_->mayCommand(p.needle, p.owner, now, why)) {
+      warnRule(GuardRule::Owner, p.source, why);
+      if (p.done) p.done("owner: " + why);
+      continue;
+    }
+    why = guard_->checkPlan(p.needle, p.waypoints, traj.pose(now), dt, inserted(p.needle), poses);
     if (!why.empty()) {
       warnRule(GuardRule::Plan, p.source, why);
     } else {
+      if (!p.owner.empty()) guard_->own(p.needle, p.owner, now, now + dt + poses.back().first);
       if (action_ && !p.done) action_->superseded(p.needle, p.source);
       traj.holdFrom(now);
       traj.replaceFrom(now, dt, poses);
@@ -395,6 +417,7 @@ void SimulatorRos::stepOnce() {
       const StepStats& s = sim_->step();
       unconverged_steps_ += s.constraint_converged ? 0 : 1;
       constraint_residual_ = s.constraint_residual;
+      watchTipSpeed();
     } catch (const NumericalError& e) {
       failure_ = e.what();
       ROS_ERROR("needle_sim: numerical failure, stepping stopped until ~reset: %s", e.what());
@@ -411,6 +434,65 @@ void SimulatorRos::stepOnce() {
   const auto p0 = ros::WallTime::now();
   publishStep(ms);
   publish_ms_ = (ros::WallTime::now() - p0).toSec() * 1e3;
+}
+
+double SimulatorRos::maxTipSpeed() const {
+  return params_->max_tip_speed > 0 ? params_->max_tip_speed : 4 * guard_->limits().max_speed;
+}
+
+void SimulatorRos::watchTipSpeed() {
+  tip_speed_.observe(*sim_);
+  const double limit = maxTipSpeed();
+  for (int n = 0; n < tip_speed_.numNeedles(); ++n) {
+    const double v = tip_speed_.speed(n);
+    tip_speed_peak_[n] = std::max(tip_speed_peak_[n], v);
+    if (!(v > limit)) continue;
+    ++tip_speed_over_[n];
+    // Throttled as the guard's rules: at most one message a second, the next says how many
+    // it stood for; but a speed twice that of the last message is told at once (a snap-back
+    // grows over a few steps: its peak must not hide behind the first step over the limit).
+    const ros::WallTime w = ros::WallTime::now();
+    if (!last_tip_warning_.isZero() && (w - last_tip_warning_).toSec() < 1.0 && !(v > 2 * last_tip_warned_speed_)) {
+      ++tip_warnings_suppressed_;
+      continue;
+    }
+    last_tip_warning_ = w;
+    last_tip_warned_speed_ = v;
+    const unsigned long more = tip_warnings_suppressed_;
+    tip_warnings_suppressed_ = 0;
+    const Vec3 tip = sim_->needle(n).tipPosition();
+    ROS_WARN("needle_sim: %s: the tip moved at %.3g m/s over the step to t = %.4f s, faster than ~max_tip_speed = "
+             "%g m/s (the guard limits the base; a needle bent in the tissue snaps back as it leaves it), tip now "
+             "(%.4g, %.4g, %.4g) m%s",
+             names_->needles[n].c_str(), v, sim_->time(), limit, tip.x(), tip.y(), tip.z(),
+             more ? (" (and " + std::to_string(more) + " more steps since the last message)").c_str() : "");
+  }
+}
+
+void SimulatorRos::diagnoseTipSpeed(diagnostic_updater::DiagnosticStatusWrapper& stat) {
+  std::lock_guard<std::mutex> lk(sim_mutex_);
+  const double limit = maxTipSpeed();
+  std::string warn;
+  stat.add("max_tip_speed", limit);
+  for (int n = 0; n < static_cast<int>(tip_speed_peak_.size()); ++n) {
+    const std::string& name = names_->needles[n];
+    if (tip_speed_over_[n] > diag_tip_over_[n]) {
+      char b[240];
+      std::snprintf(b, sizeof b, "%s: tip at up to %.3g m/s, above ~max_tip_speed = %g m/s (%lu steps since the last "
+                    "report)", name.c_str(), tip_speed_peak_[n], limit,
+                    static_cast<unsigned long>(tip_speed_over_[n] - diag_tip_over_[n]));
+      warn += (warn.empty() ? "" : "; ") + std::string(b);
+    }
+    stat.addf(name + "/tip_speed", "%.9g", tip_speed_.numNeedles() > n ? tip_speed_.speed(n) : 0.0);
+    stat.addf(name + "/tip_speed_peak", "%.9g", tip_speed_peak_[n]);
+    stat.add(name + "/tip_speed_over_limit_steps", tip_speed_over_[n]);
+    diag_tip_over_[n] = tip_speed_over_[n];
+    tip_speed_peak_[n] = 0;
+  }
+  if (warn.empty())
+    stat.summary(diagnostic_msgs::DiagnosticStatus::OK, "tips within ~max_tip_speed");
+  else
+    stat.summary(diagnostic_msgs::DiagnosticStatus::WARN, warn);
 }
 
 }  // namespace needle_sim

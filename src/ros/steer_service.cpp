@@ -16,7 +16,8 @@
 
 namespace needle_sim {
 
-bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::SteerToTarget::Response& res) {
+bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::SteerToTarget::Response& res,
+                           const std::string& caller) {
   const auto w0 = ros::WallTime::now();
   const double nan = std::numeric_limits<double>::quiet_NaN();
   res.success = res.reached = res.executed = false;
@@ -51,6 +52,11 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
   if (q.roll_rate > lim.max_angular_speed) {
     std::snprintf(buf, sizeof buf, "roll_rate: %g rad/s is faster than ~max_angular_speed = %g rad/s", q.roll_rate,
                   lim.max_angular_speed);
+    return refuse(buf);
+  }
+  if (q.dt > predict_max_dt_) {
+    std::snprintf(buf, sizeof buf, "dt: %g s is coarser than ~predict_max_dt = %g s (as for ~predict)", q.dt,
+                  predict_max_dt_);
     return refuse(buf);
   }
   if (req.max_predictions < 0) return refuse("max_predictions: must be >= 0 (0: the default)");
@@ -104,14 +110,27 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
   res.reached = plan.reached;
   res.success = true;
   if (req.execute && plan.reached) {
-    queuePlan({needle, std::move(waypoints), "~steer", {}});
-    res.executed = true;
+    // The caller's command (rule owner): refused now if another source commands the needle
+    // (and again by the stepping thread when it takes the plan).
+    std::string why;
+    bool free;
+    {
+      std::lock_guard<std::mutex> lk(sim_mutex_);
+      free = guard_->mayCommand(needle, caller, sim_->time(), why);
+    }
+    if (!free) {
+      warnRule(GuardRule::Owner, "~steer from " + caller, why);
+      res.message = "the plan is not executed: owner: " + why;
+    } else {
+      queuePlan({needle, std::move(waypoints), "~steer from " + caller, {}, caller});
+      res.executed = true;
+    }
   }
   res.compute_time = (ros::WallTime::now() - w0).toSec();
   std::snprintf(buf, sizeof buf, "%s: %zu predictions in %.2f s, predicted tip %.3f mm from the target%s",
                 plan.reached ? "reached" : "not reached within the tolerance", plan.iterations.size(),
                 res.compute_time, 1e3 * plan.distance, res.executed ? "; the plan runs" : "");
-  res.message = buf;
+  res.message = res.message.empty() ? std::string(buf) : std::string(buf) + "; " + res.message;
   return true;
 }
 

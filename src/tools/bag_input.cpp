@@ -56,6 +56,9 @@ BagSession readBagSession(const std::string& path, const std::string& pose_topic
                                                    p->pose.orientation.z);
         c.command.stamp = p->header.stamp.isZero() ? std::numeric_limits<double>::quiet_NaN()
                                                    : (p->header.stamp - origin).toSec();
+        // Who sent it (the connection header's caller id, as the node reads it): two recorded
+        // sources on one needle replay with the node's rule owner.
+        c.command.source = m.getCallerId();
         if (p->header.frame_id.empty()) c.frame_rule = GuardRule::EmptyFrame;
         else if (strip(p->header.frame_id) != strip(tissue_frame)) c.frame_rule = GuardRule::Frame;
         s.commands.push_back(c);

@@ -113,6 +113,8 @@ int predictCommand(const PredictOptions& o) {
   const Vec3& tip = last.tips[needle];
   std::printf("  final tip (% .6e, % .6e, % .6e) m, force on the holder (% .3e, % .3e, % .3e) N\n", tip[0], tip[1],
               tip[2], last.base_forces[needle][0], last.base_forces[needle][1], last.base_forces[needle][2]);
+  std::printf("  largest tip speed %.4g m/s over one step, at %.4g s (sim/tip_speed.hpp; the node's ~predict reports "
+              "the same)\n", p.max_tip_speed, p.max_tip_speed_t);
   for (int i = 0; i < sim.numTargets(); ++i)
     std::printf("  target %-8s final (% .6e, % .6e, % .6e) m, tip distance %.6e m\n", sim.targetName(i).c_str(),
                 last.targets[i][0], last.targets[i][1], last.targets[i][2], last.tip_distances[i]);
@@ -128,6 +130,8 @@ int predictCommand(const PredictOptions& o) {
   j["copy_ms_median"] = pc.median;
   j["run_ms_median"] = pr.median;
   j["final_tip"] = {tip[0], tip[1], tip[2]};
+  j["max_tip_speed"] = p.max_tip_speed;
+  j["max_tip_speed_t"] = p.max_tip_speed_t;
   if (o.compare && (o.dt > 0 && o.dt != scene.dt)) {
     InsertionPlan fine = plan;
     fine.dt = 0;

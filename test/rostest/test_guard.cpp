@@ -21,6 +21,7 @@
 #include <needle_sim/SimStatus.h>
 
 #include "sim_clock.hpp"
+#include "status_recorder.hpp"
 #include "wait_for.hpp"
 
 namespace {
@@ -37,10 +38,7 @@ struct Sample {
   std::string insertion;
 };
 
-struct Recorder {
-  std::mutex m;
-  std::vector<Sample> samples;
-  needle_sim::SimStatus last;
+struct Recorder : needle_sim_test::StatusRecorder<Sample> {
   void on(const needle_sim::SimStatus::ConstPtr& s) {
     std::lock_guard<std::mutex> lk(m);
     last = *s;
@@ -49,21 +47,6 @@ struct Recorder {
     samples.push_back({s->step, s->sim_time, Eigen::Vector3d(p.position.x, p.position.y, p.position.z),
                        Eigen::Quaterniond(p.orientation.w, p.orientation.x, p.orientation.y, p.orientation.z),
                        s->insertion_states.empty() ? "" : s->insertion_states[0]});
-  }
-  needle_sim::SimStatus status() {
-    std::lock_guard<std::mutex> lk(m);
-    return last;
-  }
-  uint64_t count(const std::string& rule) {
-    const auto s = status();
-    for (size_t i = 0; i < s.guard_rules.size(); ++i)
-      if (s.guard_rules[i] == rule) return s.guard_counts[i];
-    ADD_FAILURE() << "no rule " << rule;
-    return 0;
-  }
-  Sample lastSample() {
-    std::lock_guard<std::mutex> lk(m);
-    return samples.back();
   }
   // Largest base speeds (linear, angular, axis turn) between consecutive steps since sample k.
   void rates(size_t k, double& lin, double& ang, double& axis) {
@@ -79,25 +62,14 @@ struct Recorder {
       axis = std::max(axis, std::acos(std::clamp(xa.dot(xb), -1.0, 1.0)) / dt);
     }
   }
-  size_t size() {
-    std::lock_guard<std::mutex> lk(m);
-    return samples.size();
-  }
 };
 
 geometry_msgs::PoseStamped pose(double x, double y = kY, double z = kZ,
                                 const Eigen::Quaterniond& q = Eigen::Quaterniond::Identity()) {
-  geometry_msgs::PoseStamped p = needle_sim_test::basePose(x, y, z);
-  p.pose.orientation.w = q.w(), p.pose.orientation.x = q.x(), p.pose.orientation.y = q.y(),
-  p.pose.orientation.z = q.z();
-  return p;
+  return needle_sim_test::basePose(x, y, z, q.w(), q.x(), q.y(), q.z());
 }
 
-// Waits for d seconds of the node's simulated time.
-bool simWait(Recorder& r, double d) {
-  const double t0 = r.status().sim_time;
-  return waitFor([&] { return r.status().sim_time >= t0 + d; }, 4 * d + 5);
-}
+using needle_sim_test::simWait;
 
 }  // namespace
 

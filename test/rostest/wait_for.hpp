@@ -1,8 +1,11 @@
 #pragma once
 // Shared by the rostest gtest nodes: polls a condition on the wall clock; a base pose
-// command stamped now.
+// command stamped now; a guard rule's count in ~status.
 #include <geometry_msgs/PoseStamped.h>
+#include <needle_sim/SimStatus.h>
 #include <ros/ros.h>
+
+#include <string>
 
 namespace needle_sim_test {
 
@@ -26,6 +29,24 @@ inline geometry_msgs::PoseStamped basePose(double x, double y, double z) {
   p.pose.position.z = z;
   p.pose.orientation.w = 1;
   return p;
+}
+
+// The same turned by the unit quaternion (w, x, y, z).
+inline geometry_msgs::PoseStamped basePose(double x, double y, double z, double qw, double qx, double qy, double qz) {
+  geometry_msgs::PoseStamped p = basePose(x, y, z);
+  p.pose.orientation.w = qw, p.pose.orientation.x = qx, p.pose.orientation.y = qy, p.pose.orientation.z = qz;
+  return p;
+}
+
+// The lifetime count of the command guard's rule `rule` in a ~status message; false when the
+// message has no such rule.
+inline bool guardCount(const needle_sim::SimStatus& s, const std::string& rule, uint64_t& n) {
+  for (size_t i = 0; i < s.guard_rules.size(); ++i)
+    if (s.guard_rules[i] == rule) {
+      n = s.guard_counts[i];
+      return true;
+    }
+  return false;
 }
 
 }  // namespace needle_sim_test

@@ -12,8 +12,10 @@
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/observables.hpp"
+#include "needle_sim/sim/prediction.hpp"
 #include "needle_sim/sim/realtime_schedule.hpp"
 #include "needle_sim/sim/simulation.hpp"
+#include "needle_sim/sim/tip_speed.hpp"
 
 using namespace needle_sim;
 
@@ -527,4 +529,153 @@ TEST(CommandGuard, LoweredLimitsSlowDownTheMotionUnderWay) {
   EXPECT_NEAR(traj.lastTime(), 0.3 + 0.028 / 0.01, 1e-9);  // the 28 mm left, at 10 mm/s
   EXPECT_LT((traj.pose(10.0).position - (kRest.position + Vec3(-0.04, 0, 0))).norm(), 1e-12);  // still gets there
   EXPECT_FALSE(g.enforce(0, traj, 0.3, false));  // within the limits now: unchanged
+}
+
+// Issue #39: dynamic_reconfigure clamped max_speed 1e9 to 1 m/s and applied it. The core
+// refuses a limit above its ceiling (start-up parameters ~<limit>_ceiling) and any value that
+// is not positive and finite, whole: the limits stay as they were.
+TEST(CommandGuard, LimitsAboveTheirCeilingOrNotFiniteAreRefusedWhole) {
+  CommandGuard g = guard();  // default ceilings: max_speed 0.1 m/s
+  const double inf = std::numeric_limits<double>::infinity();
+  for (double v : {1e9, inf, 0.1000001, -1.0, 0.0, std::nan("")}) {
+    CommandLimits l = limits();
+    l.max_speed = v;
+    l.max_future = 0.02;  // a valid change in the same set: refused with it
+    try {
+      g.setLimits(l);
+      ADD_FAILURE() << "max_speed " << v << " was taken";
+    } catch (const InputError& e) {
+      EXPECT_EQ(e.key(), "~max_speed") << v;
+      if (std::isfinite(v) && v > 0.1)
+        EXPECT_NE(std::string(e.what()).find("~max_speed_ceiling = 0.1 m/s"), std::string::npos) << e.what();
+    }
+    EXPECT_DOUBLE_EQ(g.limits().max_speed, 0.05) << v;
+    EXPECT_DOUBLE_EQ(g.limits().max_future, 0.01) << v;
+  }
+  // At the ceiling: taken.
+  CommandLimits l = limits();
+  l.max_speed = 0.1;
+  g.setLimits(l);
+  EXPECT_DOUBLE_EQ(g.limits().max_speed, 0.1);
+  // Each widening limit has its ceiling, named in the refusal.
+  LimitCeilings c;
+  c.max_angular_speed_inserted = 0.2;
+  c.workspace_margin = 0.3;
+  CommandGuard h(limits(), {{kRest, 0.032}}, c);
+  l = limits();
+  l.max_angular_speed_inserted = 0.5;
+  try {
+    h.setLimits(l);
+    ADD_FAILURE() << "above the ceiling, taken";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("~max_angular_speed_inserted_ceiling = 0.2 rad/s"), std::string::npos)
+        << e.what();
+  }
+  l = limits();
+  l.workspace_margin = 0.5;
+  EXPECT_THROW(h.setLimits(l), InputError);
+  EXPECT_DOUBLE_EQ(h.limits().workspace_margin, 0.2);
+  // Start-up limits above a ceiling, or a ceiling that is not positive and finite: refused.
+  c = LimitCeilings();
+  c.max_speed = 0.01;
+  EXPECT_THROW(CommandGuard(limits(), {{kRest, 0.032}}, c), InputError);
+  c.max_speed = inf;
+  EXPECT_THROW(CommandGuard(limits(), {{kRest, 0.032}}, c), InputError);
+}
+
+// Issue #39: two processes commanding one needle got no arbitration. One source at a time:
+// the first whose command is taken owns the needle until it has been silent for
+// owner_timeout (0.5 s); an explicit holder keeps it until it releases it; a plan keeps it
+// until its end.
+TEST(CommandGuard, OneSourceCommandsANeedleAtATime) {
+  CommandGuard g = guard();
+  auto from = [](const std::string& who, double stamp, double dx = 0) {
+    PoseCommand c = at(kRest.position + Vec3(dx, 0, 0), stamp);
+    c.source = who;
+    return c;
+  };
+  ASSERT_TRUE(g.admit(0, from("/robot_a", 0.0), 0.0).accepted);
+  EXPECT_EQ(g.owner(0), "/robot_a");
+  const Admission b = g.admit(0, from("/robot_b", 0.1, 0.001), 0.1);
+  EXPECT_FALSE(b.accepted);
+  EXPECT_EQ(b.rule, GuardRule::Owner);
+  EXPECT_NE(b.reason.find("/robot_a"), std::string::npos) << b.reason;
+  EXPECT_NE(b.reason.find("/robot_b"), std::string::npos) << b.reason;
+  EXPECT_TRUE(g.admit(0, from("/robot_a", 0.2), 0.2).accepted);
+  // A command of the owner that another rule rejects still shows it is not silent.
+  EXPECT_EQ(g.admit(0, from("/robot_a", 0.1), 0.3).rule, GuardRule::OutOfOrder);
+  EXPECT_EQ(g.admit(0, from("/robot_b", 0.75), 0.75).rule, GuardRule::Owner);  // 0.45 s silent
+  // Silent for more than the timeout: the next source takes the needle.
+  ASSERT_TRUE(g.admit(0, from("/robot_b", 0.81), 0.81).accepted);
+  EXPECT_EQ(g.owner(0), "/robot_b");
+  EXPECT_EQ(g.admit(0, from("/robot_a", 0.82), 0.82).rule, GuardRule::Owner);
+  EXPECT_EQ(g.count(GuardRule::Owner), 3u);
+  // An explicit holder (the ~insert action) is refused while /robot_b commands, takes the
+  // needle once it is silent, and keeps it, silent or not, until it releases it.
+  std::string why;
+  EXPECT_FALSE(g.hold(0, "~insert", 1.0, why));
+  EXPECT_NE(why.find("/robot_b"), std::string::npos) << why;
+  ASSERT_TRUE(g.hold(0, "~insert", 1.4, why));
+  const Admission held = g.admit(0, from("/robot_b", 5.0), 5.0);
+  EXPECT_EQ(held.rule, GuardRule::Owner);
+  EXPECT_NE(held.reason.find("held by ~insert"), std::string::npos) << held.reason;
+  EXPECT_FALSE(g.mayCommand(0, "/planner", 5.0, why));
+  g.release(0, "/robot_b");  // not the holder: nothing
+  EXPECT_EQ(g.owner(0), "~insert");
+  g.release(0, "~insert");
+  EXPECT_EQ(g.owner(0), "");
+  // A plan keeps the needle until its end, however long its sender is silent, and the
+  // timeout after it.
+  ASSERT_TRUE(g.mayCommand(0, "/planner", 5.1, why));
+  g.own(0, "/planner", 5.1, 8.0);
+  EXPECT_EQ(g.admit(0, from("/robot_b", 7.9), 7.9).rule, GuardRule::Owner);
+  EXPECT_EQ(g.admit(0, from("/robot_b", 8.4), 8.4).rule, GuardRule::Owner);
+  EXPECT_TRUE(g.admit(0, from("/robot_b", 8.61), 8.61).accepted);
+  EXPECT_EQ(g.count(GuardRule::Owner), 8u);
+  // Unnamed commands are not arbitrated (a consumer with one source); restart() frees all.
+  EXPECT_TRUE(g.admit(0, at(kRest.position, 8.7), 8.7).accepted);
+  g.restart();
+  EXPECT_EQ(g.owner(0), "");
+  EXPECT_TRUE(g.admit(0, from("/robot_a", 0.0), 0.0).accepted);
+}
+
+// Issue #39: the guard sees the base, not the tip. The tip's speed is measured every step
+// from the needle states (sim/tip_speed.hpp), the same figure live and predicted: in free
+// space before the tissue the tip moves with the base (10 mm/s); a prediction at the live
+// step reports the live run's largest tip speed, and when.
+TEST(TipSpeed, TheTipMovesWithTheBaseInFreeSpaceAndPredictionAndLiveRunAgree) {
+  const Scene sc = loadScene(std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/phantom_insertion_8x4x4.yaml");
+  Simulation live(sc);
+  const BasePose start = live.needle(0).trajectory().pose(0.0);
+  BasePose end = start;
+  end.position += 0.005 * start.direction;  // 5 mm in 0.5 s: the tip (3 mm out) punctures at 0.3 s
+  InsertionPlan plan;
+  plan.waypoints = {{0.5, end}};
+  plan.duration = 0.5;
+  plan.dt = sc.dt;
+  const Prediction p = predictInsertion(live, plan);
+  live.needle(0).trajectory().replaceFrom(0.0, sc.dt, plan.waypoints);
+  TipSpeedMeter meter;
+  meter.observe(live);
+  EXPECT_EQ(meter.speed(0), 0.0);  // nothing measured yet
+  double largest = 0, at = 0;
+  for (int k = 1; k <= 500; ++k) {
+    const Vec3 before = live.needle(0).tipPosition();
+    live.step();
+    meter.observe(live);
+    // The meter's figure is the tip's displacement over the step.
+    ASSERT_NEAR(meter.speed(0), (live.needle(0).tipPosition() - before).norm() / sc.dt, 1e-12);
+    if (k >= 50 && k <= 250) EXPECT_NEAR(meter.speed(0), 0.01, 1e-4) << "step " << k << ": in free space";
+    if (meter.speed(0) > largest) largest = meter.speed(0), at = live.time();
+  }
+  EXPECT_DOUBLE_EQ(meter.largest(0), largest);
+  EXPECT_DOUBLE_EQ(meter.largestAt(0), at);
+  EXPECT_GT(largest, 0.015) << "the puncture pushes the tip ahead of the base";
+  EXPECT_NEAR(p.max_tip_speed, largest, 1e-9 * largest);
+  EXPECT_NEAR(p.max_tip_speed_t, at, 1e-9);
+  // reset(): the next observation measures nothing.
+  meter.reset();
+  meter.observe(live);
+  EXPECT_EQ(meter.speed(0), 0.0);
+  EXPECT_EQ(meter.largest(0), 0.0);
 }

@@ -11,6 +11,9 @@
 //                asks for more is slowed down, counted, never jumped to), also after a pause.
 //   checkPlan()  a planned trajectory, whole: any waypoint breaking a rule or a limit
 //                rejects it (a plan is never silently changed).
+//   ownership    one source commands a needle at a time (rule owner): the first source
+//                whose command is accepted owns the needle until it has been silent for
+//                owner_timeout; an action or a service holds it explicitly (hold/release).
 // Rules are counted one by one (lifetime counters, thread-safe), so a robot team sees which
 // rule its commands break. No ROS here: times are simulation seconds.
 #include <array>
@@ -40,9 +43,44 @@ struct CommandLimits {
   double quaternion_tolerance = 0.01;    // | |q| - 1 | above this: rejected, not normalised
   double workspace_margin = 0.2;         // [m] around the tissue's box
   double command_latency = 0.005;        // [s] a stamped command is reached at stamp + this
+  double owner_timeout = 0.5;            // [s] a needle's owner that is silent this long gives it up
   Vec3 workspace_min = Vec3::Zero(), workspace_max = Vec3::Zero();  // the tissue's box
   // Throws InputError (key: prefix + parameter name) for a limit out of its range.
   void validate(const std::string& prefix = "~") const;
+};
+
+// Hard ceilings of the limits that widen what the guard lets through (start-up parameters
+// ~<limit>_ceiling, doc/ros_api.md): no limit is ever set above its ceiling, at start-up or by
+// dynamic_reconfigure. The robot's own hardware limits belong here.
+struct LimitCeilings {
+  double max_speed = 0.1;                  // [m/s]
+  double max_angular_speed = 10.0;         // [rad/s]
+  double max_angular_speed_inserted = 0.5; // [rad/s]
+  double max_future = 1.0;                 // [s]
+  double command_timeout = 5.0;            // [s]
+  double workspace_margin = 1.0;           // [m]
+  // Each ceiling positive and finite (InputError: prefix + "<limit>_ceiling").
+  void validate(const std::string& prefix = "~") const;
+  // Throws InputError naming the limit and its ceiling for a limit above it.
+  void check(const CommandLimits& l, const std::string& prefix = "~") const;
+};
+
+// The limits that have a ceiling: the parameter's name (its ceiling: name + "_ceiling"),
+// both members and the unit. One list for the checks and the parameter readers.
+struct CeiledLimit {
+  const char* name;
+  double LimitCeilings::*ceiling;
+  double CommandLimits::*limit;
+  const char* unit;
+};
+inline constexpr CeiledLimit kCeiledLimits[] = {
+    {"max_speed", &LimitCeilings::max_speed, &CommandLimits::max_speed, "m/s"},
+    {"max_angular_speed", &LimitCeilings::max_angular_speed, &CommandLimits::max_angular_speed, "rad/s"},
+    {"max_angular_speed_inserted", &LimitCeilings::max_angular_speed_inserted,
+     &CommandLimits::max_angular_speed_inserted, "rad/s"},
+    {"max_future", &LimitCeilings::max_future, &CommandLimits::max_future, "s"},
+    {"command_timeout", &LimitCeilings::command_timeout, &CommandLimits::command_timeout, "s"},
+    {"workspace_margin", &LimitCeilings::workspace_margin, &CommandLimits::workspace_margin, "m"},
 };
 
 enum class GuardRule : int {
@@ -54,6 +92,7 @@ enum class GuardRule : int {
   Workspace,        // position outside the tissue's box plus workspace_margin
   Frame,            // frame_id with no transform to the tissue frame (ROS layer)
   EmptyFrame,       // empty frame_id, unless allowed (ROS layer)
+  Owner,            // from another source than the one that owns the needle
   Plan,             // a plan (trajectory, predict, action goal) breaking any rule: rejected whole
   LinearSpeed,      // slowed down to max_speed
   AngularSpeed,     // slowed down to max_angular_speed
@@ -73,6 +112,9 @@ struct PoseCommand {
   Vec3 position = Vec3::Zero();
   Eigen::Quaterniond orientation = Eigen::Quaterniond::Identity();
   double stamp = std::numeric_limits<double>::quiet_NaN();
+  // Who sent it (the ROS caller id, "tf", a bag's recorded caller id): one source commands
+  // a needle at a time (rule owner). "": not arbitrated (a consumer with one source).
+  std::string source;
 };
 
 struct Admission {
@@ -119,11 +161,29 @@ class CommandGuard {
     BasePose rest;         // the scene's base pose (pose convention, roll unwrapping)
     double length = 0;     // for the rigid tip position in plan checks
   };
-  CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> needles);
+  // Throws InputError for limits out of range or above a ceiling.
+  CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> needles, const LimitCeilings& ceilings = {});
 
-  // New limits (dynamic_reconfigure): validated, effective for the next command.
+  // New limits (dynamic_reconfigure): validated and held to the ceilings (InputError: the
+  // limits stay as they were), effective for the next command.
   void setLimits(const CommandLimits& limits);
   CommandLimits limits() const;
+  const LimitCeilings& ceilings() const { return ceilings_; }
+
+  // --- Ownership (rule owner). A needle is free, owned by a source that streams (its owner
+  // until it has been silent for owner_timeout, or until the end of a plan it sent, whichever
+  // is later), or held by an action or a service (until release). admit() arbitrates pose
+  // commands by PoseCommand::source; a plan or an explicit hold asks here.
+  // Whether `source` may command needle n at `now` (free, its own, or its owner silent past
+  // the timeout); if not, counts GuardRule::Owner and says who owns it in `why`.
+  bool mayCommand(int n, const std::string& source, double now, std::string& why);
+  // `source` owns needle n from now, at least until `until` (a plan's end).
+  void own(int n, const std::string& source, double now, double until = 0);
+  // An explicit holder (the ~insert action, a service's executed plan): takes the needle when
+  // mayCommand allows it, and keeps it, silent or not, until release(n, source).
+  bool hold(int n, const std::string& source, double now, std::string& why);
+  void release(int n, const std::string& source);
+  std::string owner(int n) const;  // "" when free
 
   // A pose command for needle n, received at simulation time now.
   Admission admit(int n, const PoseCommand& c, double now);
@@ -175,7 +235,7 @@ class CommandGuard {
   double needed(int n, const BaseTrajectory& traj, const BasePose& from, const BasePose& to, bool inserted,
                 const CommandLimits& l, GuardRule& rule) const;
 
-  mutable std::mutex mutex_;  // limits_, last_stamp_, last_roll_, taken_
+  mutable std::mutex mutex_;  // limits_, last_stamp_, last_roll_, taken_, owners_
   CommandLimits limits_;
   std::vector<NeedleInfo> needles_;
   std::vector<double> last_stamp_;  // -inf: none yet
@@ -191,6 +251,17 @@ class CommandGuard {
   std::vector<Taken> taken_;
   std::array<std::atomic<uint64_t>, kGuardRules> counts_{};
   std::atomic<long> limits_version_{0};
+  LimitCeilings ceilings_;
+  // Per needle, who commands it (mutex_): the source, when it last sent a command, until
+  // when a plan of its keeps it, and whether it holds it explicitly.
+  struct OwnerState {
+    std::string source;
+    double last = 0, until = 0;
+    bool held = false;
+  };
+  std::vector<OwnerState> owners_;
+  // Whether `source` may command needle n now (mutex_ held); if not, `why` names the owner.
+  bool ownerAllows(int n, const std::string& source, double now, std::string& why) const;
 };
 
 }  // namespace needle_sim

@@ -42,6 +42,7 @@
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/realtime_schedule.hpp"
 #include "needle_sim/sim/simulation.hpp"
+#include "needle_sim/sim/tip_speed.hpp"
 
 namespace needle_sim {
 
@@ -65,6 +66,9 @@ class SimulatorRos {
     std::vector<PlanWaypoint> waypoints;
     std::string source;                     // for warnings
     std::function<void(const std::string&)> done;  // called by the worker: "" taken, else why refused
+    // Who sends it (rule owner: the caller id of a topic or a service, or the holder's name);
+    // "": not arbitrated. Taken, it owns the needle until the plan's end at least.
+    std::string owner;
   };
   void queuePlan(Plan plan);
   // Stops a needle where it is now (the action's preemption).
@@ -96,14 +100,15 @@ class SimulatorRos {
   void restartClock(const ros::Time& now);      // queue_mutex_ held
   // --- command input (command_input.cpp)
   void subscribeCommands();
-  void onPose(int needle, const geometry_msgs::PoseStamped::ConstPtr& m);
-  void onTrajectory(int needle, const needle_sim::NeedleTrajectory::ConstPtr& m);
-  void onMultiDof(int needle, const trajectory_msgs::MultiDOFJointTrajectory::ConstPtr& m);
+  // (caller: the publisher's caller id, from the connection header: the source for rule owner)
+  void onPose(int needle, const geometry_msgs::PoseStamped::ConstPtr& m, const std::string& caller);
+  void onTrajectory(int needle, const needle_sim::NeedleTrajectory::ConstPtr& m, const std::string& caller);
+  void onMultiDof(int needle, const trajectory_msgs::MultiDOFJointTrajectory::ConstPtr& m, const std::string& caller);
   void lookupTfCommands();
   // The transform from a message's frame to the tissue frame; false (counted, warned) when
   // the frame is empty and not allowed, or tf has no transform.
   bool toTissue(const std::string& frame, const ros::Time& stamp, const std::string& source, Rigid& out);
-  void admit(int needle, const PoseCommand& c, const std::string& source);
+  void admit(int needle, const PoseCommand& c, const std::string& source);  // c.source: who sent it
   void warnRule(GuardRule rule, const std::string& source, const std::string& why);
   std::mutex warn_mutex_;
   std::array<ros::WallTime, kGuardRules> last_warning_;  // per rule (throttled to 1 Hz), warn_mutex_
@@ -113,7 +118,8 @@ class SimulatorRos {
   bool onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::SetTarget::Response& res);
   bool onPredict(needle_sim::PredictInsertion::Request& req, needle_sim::PredictInsertion::Response& res);
   // (steer_service.cpp)
-  bool onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::SteerToTarget::Response& res);
+  bool onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::SteerToTarget::Response& res,
+               const std::string& caller);
   int needleIndex(const std::string& name) const;  // -1: none; "" is the first
   // Why a service refuses a request whose `field` is in a frame toTissue could not take.
   std::string frameRefusal(const std::string& field, const std::string& frame) const;
@@ -144,6 +150,18 @@ class SimulatorRos {
   // count at the last diagnostics.
   uint64_t unconverged_steps_ = 0, diag_unconverged_ = 0;
   double constraint_residual_ = 0;  // of the last step
+  // The tips' speeds, every step (~max_tip_speed: warned, diagnostics tip_speed).
+  TipSpeedMeter tip_speed_;
+  double maxTipSpeed() const;  // the threshold in force
+  void watchTipSpeed();        // after each step, sim_mutex_ held
+  void diagnoseTipSpeed(diagnostic_updater::DiagnosticStatusWrapper& stat);
+  std::vector<double> tip_speed_peak_;     // per needle, the largest since the last diagnostics
+  std::vector<uint64_t> tip_speed_over_;   // per needle, lifetime: steps above ~max_tip_speed
+  std::vector<uint64_t> diag_tip_over_;    // ... at the last diagnostics
+  ros::WallTime last_tip_warning_;
+  double last_tip_warned_speed_ = 0;
+  unsigned long tip_warnings_suppressed_ = 0;
+  double predict_max_dt_ = 0;  // ~predict_max_dt, resolved against the scene's dt
 
   std::mutex queue_mutex_;  // schedule_, origin_, commands_, plans_, holds_, stop_
   RealtimeSchedule schedule_;

@@ -45,6 +45,7 @@ struct PredictionCheckpoint {
   std::shared_ptr<const Simulation> sim;    // the predicted state then
   std::vector<PredictionSample> samples;    // the samples up to it
   double next_sample = 0;                   // when the next sample is due [s from now]
+  double max_tip_speed = 0, max_tip_speed_t = 0;  // Prediction's, up to it
 };
 
 struct Prediction {
@@ -52,6 +53,10 @@ struct Prediction {
   int steps = 0;                          // all of the plan's, including those a checkpoint saved
   int steps_run = 0;                      // simulated by this call
   int max_dofs = 0;
+  // The planned needle's largest tip speed over the predicted steps [m/s] (step to step, at
+  // the prediction's dt: sim/tip_speed.hpp) and when [s from now]: a snap-back as the needle
+  // leaves the tissue shows here before the plan is sent.
+  double max_tip_speed = 0, max_tip_speed_t = 0;
   double copy_ms = 0, run_ms = 0;  // copying the simulation, simulating the plan
   StepStats totals;                // phases summed over the steps run (where run_ms goes)
   int mesh_changes = 0;

@@ -26,6 +26,7 @@ constexpr RuleInfo kRules[kGuardRules] = {
     {"workspace", "workspace_margin", true},
     {"frame", "tissue_frame", true},
     {"empty_frame", "allow_empty_frame", true},
+    {"owner", "owner_timeout", true},
     {"plan", "", true},
     {"linear_speed", "max_speed", false},
     {"angular_speed", "max_angular_speed", false},
@@ -65,8 +66,25 @@ void CommandLimits::validate(const std::string& prefix) const {
   non_negative(command_latency, "command_latency");
   if (!(quaternion_tolerance > 0) || !(quaternion_tolerance < 1))
     throw InputError("", prefix + "quaternion_tolerance", "must be in (0, 1)");
+  positive(owner_timeout, "owner_timeout");
   if (max_angular_speed_inserted > max_angular_speed)
     throw InputError("", prefix + "max_angular_speed_inserted", "must not exceed ~max_angular_speed");
+}
+
+void LimitCeilings::validate(const std::string& prefix) const {
+  for (const CeiledLimit& c : kCeiledLimits)
+    if (!(this->*c.ceiling > 0) || !std::isfinite(this->*c.ceiling))
+      throw InputError("", prefix + c.name + "_ceiling", "must be positive and finite");
+}
+
+void LimitCeilings::check(const CommandLimits& l, const std::string& prefix) const {
+  for (const CeiledLimit& c : kCeiledLimits)
+    if (l.*c.limit > this->*c.ceiling) {
+      char buf[300];
+      std::snprintf(buf, sizeof buf, "%.6g %s is above its ceiling %s%s_ceiling = %g %s (a start-up parameter)",
+                    l.*c.limit, c.unit, prefix.c_str(), c.name, this->*c.ceiling, c.unit);
+      throw InputError("", prefix + c.name, buf);
+    }
 }
 
 SegmentMotion segmentMotion(const BaseTrajectory& traj, const BasePose& a, const BasePose& b,
@@ -92,15 +110,18 @@ SegmentMotion segmentMotion(const BaseTrajectory& traj, const BasePose& a, const
   return m;
 }
 
-CommandGuard::CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> needles)
-    : limits_(limits), needles_(std::move(needles)) {
+CommandGuard::CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> needles, const LimitCeilings& ceilings)
+    : limits_(limits), needles_(std::move(needles)), ceilings_(ceilings) {
+  ceilings_.validate();
   limits_.validate();
+  ceilings_.check(limits_);
   for (auto& c : counts_) c = 0;
   restart();
 }
 
 void CommandGuard::setLimits(const CommandLimits& limits) {
   limits.validate();
+  ceilings_.check(limits);
   std::lock_guard<std::mutex> lk(mutex_);
   limits_ = limits;
   ++limits_version_;
@@ -117,6 +138,7 @@ void CommandGuard::restart() {
   last_roll_.clear();
   for (const auto& n : needles_) last_roll_.push_back(n.rest.roll);
   taken_.assign(needles_.size(), Taken{});
+  owners_.assign(needles_.size(), OwnerState{});
 }
 
 std::array<uint64_t, kGuardRules> CommandGuard::counts() const {
@@ -174,8 +196,71 @@ bool CommandGuard::checkPose(int n, const Vec3& p, const Eigen::Quaterniond& q, 
   return true;
 }
 
+bool CommandGuard::ownerAllows(int n, const std::string& source, double now, std::string& why) const {
+  const OwnerState& o = owners_[n];
+  if (o.source.empty() || o.source == source) return true;
+  if (o.held) {
+    why = "the needle is held by " + o.source + " (until it ends); commands from " + source + " are rejected";
+    return false;
+  }
+  // The end of a plan it sent counts as its last command.
+  const double silent = now - std::max(o.last, o.until);
+  if (silent > limits_.owner_timeout) return true;  // given up: silent too long
+  char buf[200];
+  if (silent < 0)
+    std::snprintf(buf, sizeof buf, "(its plan runs %.4g s more, and it keeps the needle ~owner_timeout = %g s after)",
+                  -silent, limits_.owner_timeout);
+  else
+    std::snprintf(buf, sizeof buf, "(until it has been silent for ~owner_timeout = %g s; its last command %.4g s ago)",
+                  limits_.owner_timeout, silent);
+  why = "the needle is commanded by " + o.source + " " + buf + "; commands from " + source + " are rejected";
+  return false;
+}
+
+bool CommandGuard::mayCommand(int n, const std::string& source, double now, std::string& why) {
+  std::lock_guard<std::mutex> lk(mutex_);
+  if (ownerAllows(n, source, now, why)) return true;
+  record(GuardRule::Owner);
+  return false;
+}
+
+void CommandGuard::own(int n, const std::string& source, double now, double until) {
+  std::lock_guard<std::mutex> lk(mutex_);
+  OwnerState& o = owners_[n];
+  if (o.source != source) o = OwnerState{source, now, until, false};
+  o.last = std::max(o.last, now);
+  o.until = std::max(o.until, until);
+}
+
+bool CommandGuard::hold(int n, const std::string& source, double now, std::string& why) {
+  std::lock_guard<std::mutex> lk(mutex_);
+  if (!ownerAllows(n, source, now, why)) {
+    record(GuardRule::Owner);
+    return false;
+  }
+  owners_[n] = OwnerState{source, now, now, true};
+  return true;
+}
+
+void CommandGuard::release(int n, const std::string& source) {
+  std::lock_guard<std::mutex> lk(mutex_);
+  if (owners_[n].source == source) owners_[n] = OwnerState{};
+}
+
+std::string CommandGuard::owner(int n) const {
+  std::lock_guard<std::mutex> lk(mutex_);
+  return owners_[n].source;
+}
+
 Admission CommandGuard::admit(int n, const PoseCommand& c, double now) {
   std::lock_guard<std::mutex> lk(mutex_);
+  // One source at a time: another's command is rejected before anything else is looked at;
+  // the owner's own commands, taken or not, show it is not silent.
+  if (!c.source.empty()) {
+    std::string why;
+    if (!ownerAllows(n, c.source, now, why)) return reject(GuardRule::Owner, why);
+    if (owners_[n].source == c.source) owners_[n].last = std::max(owners_[n].last, now);
+  }
   const bool stamped = !std::isnan(c.stamp);
   if (stamped && !std::isfinite(c.stamp)) return reject(GuardRule::NonFinite, "non-finite stamp");
   const double stamp = stamped ? c.stamp : now;
@@ -196,6 +281,7 @@ Admission CommandGuard::admit(int n, const PoseCommand& c, double now) {
   a.at = stamp + limits_.command_latency;
   last_stamp_[n] = stamp;
   last_roll_[n] = a.pose.roll;
+  if (!c.source.empty() && owners_[n].source != c.source) owners_[n] = OwnerState{c.source, now, now, false};
   return a;
 }
 

@@ -9,6 +9,7 @@
 
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/sim/observables.hpp"
+#include "needle_sim/sim/tip_speed.hpp"
 #include "needle_sim/core/stopwatch.hpp"
 
 namespace needle_sim {
@@ -124,6 +125,12 @@ Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, l
     out.samples.push_back(sampleOf(sim, 0.0, plan.needle, plan.target_error));
   }
   out.max_dofs = sim.numDofs();
+  TipSpeedMeter tip_speed;
+  tip_speed.observe(sim);  // the tips of now (or of the checkpoint)
+  if (cp) {
+    out.max_tip_speed = cp->max_tip_speed;
+    out.max_tip_speed_t = cp->max_tip_speed_t;
+  }
   std::vector<double> wanted = reuse.checkpoint_times;
   std::sort(wanted.begin(), wanted.end());
   size_t w = 0;
@@ -134,6 +141,11 @@ Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, l
     out.mesh_changes += st.mesh_changed;
     out.max_dofs = std::max(out.max_dofs, sim.numDofs());
     const double t = sim.time() - now;
+    tip_speed.observe(sim);
+    if (tip_speed.speed(plan.needle) > out.max_tip_speed) {
+      out.max_tip_speed = tip_speed.speed(plan.needle);
+      out.max_tip_speed_t = t;
+    }
     if (k == steps || t >= next - 1e-9 * dt) {
       out.samples.push_back(sampleOf(sim, t, plan.needle, plan.target_error));
       while (next <= t + 1e-9 * dt) next += plan.sample_period > 0 ? plan.sample_period : dt;
@@ -141,7 +153,8 @@ Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, l
     bool keep = false;
     while (w < wanted.size() && wanted[w] <= t + 1e-9 * dt) keep = true, ++w;
     if (keep && k < steps)
-      out.checkpoints.push_back({k, t, std::make_shared<const Simulation>(sim), out.samples, next});
+      out.checkpoints.push_back(
+          {k, t, std::make_shared<const Simulation>(sim), out.samples, next, out.max_tip_speed, out.max_tip_speed_t});
   }
   out.steps = static_cast<int>(steps);
   out.steps_run = static_cast<int>(steps - first + 1);
