@@ -9,10 +9,14 @@ BUILD="${NEEDLE_SIM_BUILD_DIR:-$ROOT/build}"
 # <package>/build/, so a devel space there hides the node and the tool from it.
 DEVEL="${NEEDLE_SIM_DEVEL_DIR:-$ROOT/devel}"
 
+# What the core library, the needle_sim tool and their tests need (NEEDLE_SIM_ROS=OFF).
+CORE_PACKAGES=(cmake g++ libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev
+  libcli11-dev libassimp-dev libnlopt-dev libgtest-dev)
 # Everything the package needs from Debian (package.xml declares the same dependencies).
 PACKAGES=(
+  "${CORE_PACKAGES[@]}"
   # build tools and ROS 1 from Debian (Debian's own ROS 1 packages: there is no /opt/ros)
-  cmake g++ catkin ros-core-dev rosbash libroscpp-dev ros-std-msgs ros-geometry-msgs
+  catkin ros-core-dev rosbash libroscpp-dev ros-std-msgs ros-geometry-msgs
   ros-sensor-msgs ros-nav-msgs ros-std-srvs ros-visualization-msgs ros-trajectory-msgs libtrajectory-msgs-dev
   libdiagnostic-updater-dev libtf2-ros-dev libactionlib-dev libactionlib-msgs-dev ros-actionlib-msgs
   libdynamic-reconfigure-config-init-mutex-dev
@@ -23,9 +27,7 @@ PACKAGES=(
   python3-actionlib python3-actionlib-msgs python3-dynamic-reconfigure
   # the viewer, and its test under a virtual display
   rviz xvfb python3-pil
-  python3-rostest librostest-dev libgtest-dev
-  # core library
-  libeigen3-dev libsuitesparse-dev libopenblas0-pthread libyaml-cpp-dev nlohmann-json3-dev libcli11-dev libassimp-dev libnlopt-dev
+  python3-rostest librostest-dev
   # plots
   python3-matplotlib python3-yaml
   # needle_sim ensemble: sampling and statistics, the Dask engine (the tests use psutil)
@@ -85,6 +87,41 @@ configure_sanitized() {
       -DNEEDLE_SIM_SANITIZE=ON -DNEEDLE_SIM_FUZZ=ON -DCATKIN_DEVEL_PREFIX="$SANITIZED_BUILD/devel" \
       -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
   fi
+}
+
+# The core library and the tool with plain CMake, without ROS (NEEDLE_SIM_ROS=OFF: no catkin;
+# NEEDLE_SIM_ROSBAG=OFF: no ROS library at all), in folder $1; further arguments go to cmake
+# (a compiler, sanitizer flags). Builds the tool and tutorial 0.
+configure_core() {
+  local dir="$1"
+  shift
+  if [ -f "$dir/CMakeCache.txt" ] && ! grep -q "^NEEDLE_SIM_ROS:BOOL=OFF" "$dir/CMakeCache.txt"; then
+    echo "needle_sim: $dir was configured with ROS: made anew" >&2
+    rm -rf "$dir"
+  fi
+  if [ ! -f "$dir/CMakeCache.txt" ]; then
+    cmake -S "$ROOT" -B "$dir" -DNEEDLE_SIM_ROS=OFF -DNEEDLE_SIM_ROSBAG=OFF -DBUILD_TESTING=ON "$@" >&2
+  fi
+}
+
+# A built no-ROS folder ($1): tutorial 0 through CTest, a shipped scene by name with the
+# tool, and nothing of ROS linked.
+check_core_build() {
+  local dir="$1" out
+  (cd "$dir" && ctest --output-on-failure -R tutorial_00_library) >&2
+  out="$(mktemp -d /tmp/needle_sim_core.XXXXXX)"
+  "$dir/bin/needle_sim" run phantom_insertion_8x4x4.yaml --out "$out" --quiet --set time.duration=0.5
+  /usr/bin/python3 - "$out/summary.json" <<'PY'
+import json, sys
+s = json.load(open(sys.argv[1]))
+assert s["status"] == "ok" and s["needles"]["needle"]["state"] in ("inserted", "punctured"), s
+print("needle_sim (no ROS): ran the scene, %d steps, tip %s" % (s["steps"], s["needles"]["needle"]["state"]))
+PY
+  if ldd "$dir/bin/needle_sim" "$dir/lib/libneedle_sim_core.so" | grep -Ei "libros|librosbag|libroscpp|catkin|libactionlib|libtf2"; then
+    echo "needle_sim: the no-ROS build links ROS libraries (above)" >&2
+    return 1
+  fi
+  echo "needle_sim (no ROS): library and tool link nothing of ROS" >&2
 }
 
 NEEDLE_SIM="$DEVEL/lib/needle_sim/needle_sim"

@@ -182,7 +182,7 @@ void SimulatorRos::load() {
   tip_speed_.observe(*sim_);  // the tips at the start: the first step is measured from them
   commanded_ = false;
   primary_target_ = 0;
-  step_ms_max_ = 0;
+  step_ms_ = RunStatistics(1e3 * sim_->dt(), kStepWindow);
   rtf_window_.clear();
   observe(*sim_, obs_);
 }
@@ -423,7 +423,7 @@ void SimulatorRos::stepOnce() {
       ROS_ERROR("needle_sim: numerical failure, stepping stopped until ~reset: %s", e.what());
     }
     ms = (ros::WallTime::now() - t0).toSec() * 1e3;
-    step_ms_max_ = std::max(step_ms_max_, ms);
+    step_ms_.add(ms);
     sim_time_now_ = sim_->time();
     if (!params_->as_fast_as_possible) {
       const ros::Time end = ros::Time::now();

@@ -6,6 +6,7 @@
 #include <string>
 
 #include "needle_sim/calibration/force_record.hpp"
+#include "needle_sim/core/error.hpp"
 #include "needle_sim/sim/command_replay.hpp"
 
 namespace needle_sim {
@@ -19,7 +20,15 @@ struct BagSession {
 
 // Throws InputError naming the bag and the topic: unreadable bag, an empty topic, a topic of
 // another type, a wrench that is not in a *_base frame.
+#ifdef NEEDLE_SIM_WITH_ROSBAG
 BagSession readBagSession(const std::string& bag, const std::string& pose_topic, const std::string& wrench_topic,
                           int needle, const std::string& tissue_frame = "tissue");
+#else
+// Built without rosbag (NEEDLE_SIM_ROS OFF and no rosbag_storage): bags are refused.
+inline BagSession readBagSession(const std::string& bag, const std::string&, const std::string&, int,
+                                 const std::string& = "tissue") {
+  throw InputError(bag, "--bag", "this needle_sim was built without rosbag: read a CSV record, or build with ROS");
+}
+#endif
 
 }  // namespace needle_sim

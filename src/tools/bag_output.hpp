@@ -9,13 +9,15 @@
 // simulated time. The messages are built by the node's own conversions (src/ros), so the
 // bag holds what the node would have published. Stamps: origin + simulated time (origin:
 // the input bag's start when the run replays one, else 0).
-#include <rosbag/bag.h>
-
 #include <memory>
 #include <string>
 
+#include "needle_sim/core/error.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
+
+#ifdef NEEDLE_SIM_WITH_ROS
+#include <rosbag/bag.h>
 
 namespace needle_sim {
 
@@ -42,3 +44,19 @@ class BagOutput {
 };
 
 }  // namespace needle_sim
+#else
+namespace needle_sim {
+
+// Built without ROS (NEEDLE_SIM_ROS OFF): the node's messages do not exist, --out-bag is refused.
+class BagOutput {
+ public:
+  BagOutput(const std::string&, const std::string&, const Simulation&, double, double = 0) {
+    throw InputError("", "--out-bag", "this needle_sim was built without ROS (NEEDLE_SIM_ROS=OFF): it cannot write the node's messages");
+  }
+  void record(const Simulation&, double) {}
+  void close() {}
+  long messages() const { return 0; }
+};
+
+}  // namespace needle_sim
+#endif

@@ -155,7 +155,8 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
   if (o.target_error_every > 0 && sim.numTargets() == 0)
     throw InputError(o.scene, "--target-error-every", "the scene has no target (add one with --target X Y Z)");
   const long steps = o.steps > 0 ? o.steps : scene.numSteps();
-  std::vector<double> total, est, mark, rebuild, pass_share, goal, copy_ms, dual_it;
+  RunStatistics total(1e3 * sim.dt());  // step times against the deadline dt
+  std::vector<double> est, mark, rebuild, pass_share, goal, copy_ms, dual_it;
   struct Slow {
     double ms;
     long step;
@@ -175,7 +176,7 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
     const StepStats s = sim.step();
     const double ms = msSince(t0);
     if (o.slowest > 0) slow.push_back({ms, sim.stepIndex(), s});
-    total.push_back(ms);
+    total.add(ms);
     dofs.push_back(sim.numDofs());
     sum_total += ms;
     sum_adapt += s.adapt_ms();
@@ -208,16 +209,10 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
     }
   }
   const double wall = std::chrono::duration<double>(steadyNow() - w0).count();
-  const Percentiles pt = percentiles(total), pd = percentiles(dofs), pe = percentiles(est), pm = percentiles(mark),
+  const Percentiles pt = total.percentiles(), pd = percentiles(dofs), pe = percentiles(est), pm = percentiles(mark),
                     pr = percentiles(rebuild), pg = percentiles(goal), pc = percentiles(copy_ms),
                     pi = percentiles(dual_it);
-  long misses = 0, run = 0, longest = 0;
-  for (double ms : total) {
-    const bool miss = ms > 1e3 * sim.dt();
-    misses += miss;
-    run = miss ? run + 1 : 0;
-    longest = std::max(longest, run);
-  }
+  const long misses = total.misses(), longest = total.longestMissRun();
   const AdaptationCounters ac = sim.adaptationCounters();
   std::printf("needle_sim bench: %s, %ld steps%s (times in ms)\n", o.scene.c_str(), steps, o.pace ? ", paced at dt" : "");
   std::printf("| scene | wall s | DOFs median | DOFs max | step median | step p99 | step p99.9 | step max | steps > dt | "

@@ -187,7 +187,7 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
                   bag_run.wrench_topic.c_str(), m, m ? std::sqrt(se / m) : 0.0, out_dir.c_str());
     }
   }
-  const auto p = percentiles(rec->stepTimes());
+  const auto p = rec->stepTimes().percentiles();
   std::printf("needle_sim: %ld steps in %.3f s (step median %.3f ms, p95 %.3f ms, max %.3f ms)\n", n, wall,
               p.median, p.p95, p.max);
   const Observables o = observe(*sim);

@@ -20,9 +20,12 @@ std::string executablePath() {
 std::string shareDir() {
   if (const char* env = std::getenv("NEEDLE_SIM_SHARE_DIR"); env && *env) return env;
   if (const std::string exe = executablePath(); !exe.empty()) {
-    const fs::path installed = fs::path(exe).parent_path() / ".." / ".." / "share" / "needle_sim";
-    std::error_code ec;
-    if (fs::exists(installed / "config" / "scenes", ec)) return fs::weakly_canonical(installed, ec).string();
+    // <prefix>/lib/needle_sim/needle_sim (catkin) or <prefix>/bin/needle_sim (plain CMake)
+    for (const char* up : {"../..", ".."}) {
+      const fs::path installed = fs::path(exe).parent_path() / up / "share" / "needle_sim";
+      std::error_code ec;
+      if (fs::exists(installed / "config" / "scenes", ec)) return fs::weakly_canonical(installed, ec).string();
+    }
   }
   return NEEDLE_SIM_SOURCE_SHARE_DIR;
 }

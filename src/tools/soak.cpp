@@ -73,8 +73,7 @@ int soakCommand(const SoakOptions& o) {
     csv << "steps,time,dofs,step_median_ms,step_p95_ms,step_max_ms,heap_mb,rss_mb,kinetic_j,elastic_j\n";
   }
   nlohmann::json windows = nlohmann::json::array();
-  std::vector<double> ms;
-  ms.reserve(window);
+  RunStatistics ms(1e3 * sim.dt());  // one window's step times
   // Heap in use at the end of each full window (one cycle by default): the first cycle warms caches
   // up (cached compliance columns, the refinement forest's nodes), so growth is measured
   // from the end of the second window to the end of the last full one, at the same phase.
@@ -96,9 +95,9 @@ int soakCommand(const SoakOptions& o) {
       std::fprintf(stderr, "needle_sim: numerical failure during the soak: %s\n", e.what());
       return 3;
     }
-    ms.push_back(std::chrono::duration<double, std::milli>(clock::now() - t0).count());
+    ms.add(std::chrono::duration<double, std::milli>(clock::now() - t0).count());
     if (k % window == 0 || k == o.steps) {
-      const auto p = percentiles(ms);
+      const auto p = ms.percentiles();
       const double rss = rssMb(), heap = heapMb(), ek = sim.kineticEnergy(), ee = sim.elasticEnergy();
       if (!std::isfinite(ek) || !std::isfinite(ee)) {
         std::fprintf(stderr, "needle_sim: non-finite energy at step %ld\n", k);

@@ -3,7 +3,10 @@
   - the core's modules (folders under include/needle_sim and src/core) form no cycle;
   - the core includes nothing of ROS;
   - the ROS layer (src/ros) includes no fem/, adapt/, solver/ or tissue/ header: it talks to
-    the simulation through sim/ (observables, snapshots), command/ and scene/ only.
+    the simulation through sim/ (observables, snapshots), command/ and scene/ only;
+  - the command-line tool (src/tools) includes nothing of ROS but in its bag input and output
+    (bag_input.*, bag_output.*: built only when rosbag, or ROS, is there), so that it builds
+    with the core alone (NEEDLE_SIM_ROS=OFF).
 Prints the module graph; exits 1 with the offending includes otherwise."""
 import os
 import re
@@ -67,12 +70,20 @@ def main():
         for inc in includes(os.path.join(ros_dir, n)):
             if re.match(r"needle_sim/(fem|adapt|solver|tissue)/", inc):
                 problems.append("src/ros/%s includes %s: physics in the ROS layer" % (n, inc))
+    tools_dir = os.path.join(ROOT, "src", "tools")
+    ros_headers = re.compile(r"(ros|rosbag|geometry_msgs|nav_msgs|std_msgs|sensor_msgs|tf2\w*|needle_sim/ros)/|\.\./ros/")
+    for n in sorted(os.listdir(tools_dir)):
+        if n.startswith(("bag_input.", "bag_output.")):
+            continue
+        for inc in includes(os.path.join(tools_dir, n)):
+            if ros_headers.match(inc):
+                problems.append("src/tools/%s includes %s: the tool must build without ROS" % (n, inc))
     for m in sorted(graph):
         print("%-9s -> %s" % (m, ", ".join(sorted(graph[m]))))
     if problems:
         print("\n".join(problems), file=sys.stderr)
         return 1
-    print("no cycle; no ROS in the core; no physics headers in src/ros")
+    print("no cycle; no ROS in the core; no physics headers in src/ros; no ROS in src/tools but its bag I/O")
     return 0
 
 

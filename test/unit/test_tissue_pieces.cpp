@@ -8,6 +8,7 @@
 #include "fixtures.hpp"
 #include "needle_sim/brain/skull_contact.hpp"
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/core/run_statistics.hpp"
 #include "needle_sim/fem/corotational_hex_model.hpp"
 #include "needle_sim/geometry/embedded_surface.hpp"
 #include "needle_sim/solver/cholmod_solver.hpp"
@@ -196,4 +197,29 @@ TEST(SkullContact, GapsPenaltyAndFrozenReactionsOfASphere) {
     const Vec3 out = sphere.vertex(v) - centre;
     EXPECT_LT(skull.reactions()[v].dot(out), 0.0) << v;
   }
+}
+
+// The run-statistics accumulator (core/run_statistics.hpp) that summary.json, bench, soak and
+// the node's diagnostics report from: misses and their longest run over every sample, the
+// percentiles over the samples kept.
+TEST(RunStatistics, CountsMissesTheirLongestRunAndKeepsAWindow) {
+  RunStatistics s(1.0, 4);
+  for (double v : {0.5, 1.5, 2.0, 0.9, 1.1, 1.2, 1.3, 0.2, 1.0}) s.add(v);
+  EXPECT_EQ(s.count(), 9);
+  EXPECT_EQ(s.misses(), 5);          // 1.5 2.0 | 1.1 1.2 1.3 (1.0 is on time)
+  EXPECT_EQ(s.longestMissRun(), 3);
+  EXPECT_DOUBLE_EQ(s.max(), 2.0);
+  EXPECT_DOUBLE_EQ(s.sum(), 9.7);
+  const Percentiles p = s.percentiles();  // of the last four: 1.2 1.3 0.2 1.0
+  EXPECT_DOUBLE_EQ(p.max, 1.3);
+  EXPECT_DOUBLE_EQ(p.median, 1.1);
+  EXPECT_DOUBLE_EQ(p.mean, 0.925);
+  s.clear();
+  EXPECT_EQ(s.count(), 0);
+  EXPECT_EQ(s.misses(), 0);
+  s.add(3);
+  EXPECT_EQ(s.longestMissRun(), 1);
+  RunStatistics none;  // no deadline: nothing misses
+  none.add(1e9);
+  EXPECT_EQ(none.misses(), 0);
 }

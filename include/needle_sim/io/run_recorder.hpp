@@ -17,15 +17,12 @@
 #include <functional>
 
 #include "needle_sim/adapt/spr_estimator.hpp"
+#include "needle_sim/core/run_statistics.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 namespace needle_sim {
 
-struct Percentiles {
-  double median = 0, p95 = 0, p99 = 0, p999 = 0, max = 0, mean = 0;
-};
-Percentiles percentiles(std::vector<double> v);
 
 struct RecorderOptions {
   bool centerline = false;      // DIR/centerline.csv: every needle node at every step
@@ -47,7 +44,8 @@ class RunRecorder {
   void finish(double wall_s);
   void fail(double wall_s, long step, const std::string& message);
 
-  const std::vector<double>& stepTimes() const { return step_ms_; }
+  // Step times, their deadline (dt) and its misses.
+  const RunStatistics& stepTimes() const { return step_ms_; }
   std::string summaryPath() const { return dir_ + "/summary.json"; }
   std::string timeseriesPath() const { return dir_ + "/timeseries.csv"; }
 
@@ -73,13 +71,13 @@ class RunRecorder {
   double eta_last_ = 0, eta_max_last_ = 0, eta_rel_max_ = 0;
   int max_tissue_dofs_ = 0, mesh_changes_ = 0;
   long refined_total_ = 0, coarsened_total_ = 0;
-  std::vector<double> adapt_ms_;
+  RunStatistics adapt_ms_;
   std::string dir_;
   std::ofstream csv_, centerline_;
   std::vector<Column> columns_;
   std::vector<std::pair<double, std::string>> series_tissue_, series_needles_, series_surface_;
   Observables obs_;
-  std::vector<double> step_ms_, forces_ms_, assemble_ms_, factor_ms_, solve_ms_;
+  RunStatistics step_ms_, forces_ms_, assemble_ms_, factor_ms_, solve_ms_;
   long linear_iterations_ = 0, factorizations_ = 0, newton_iterations_ = 0;
   long async_factorizations_ = 0, factor_waits_ = 0;
   double factor_wait_ms_max_ = 0;
@@ -89,7 +87,7 @@ class RunRecorder {
   int max_constraint_points_ = 0;
   double max_constraint_residual_ = 0;
   long constraint_unconverged_ = 0;  // steps whose constraint solve missed its tolerance
-  std::vector<double> constraint_ms_;
+  RunStatistics constraint_ms_;
   std::map<std::string, double> min_target_distance_;  // "target/needle" -> closest tip approach
 };
 

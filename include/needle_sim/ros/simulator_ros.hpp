@@ -41,6 +41,7 @@
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/realtime_schedule.hpp"
+#include "needle_sim/core/run_statistics.hpp"
 #include "needle_sim/sim/simulation.hpp"
 #include "needle_sim/sim/tip_speed.hpp"
 
@@ -141,7 +142,11 @@ class SimulatorRos {
   bool commanded_ = false;  // a command was taken since the start (state waiting before)
   long limits_version_ = 0;  // of the limits the trajectories were last checked against
   int primary_target_ = 0;
-  double step_ms_max_ = 0, publish_ms_ = 0;
+  // Step times: percentiles over the last kStepWindow steps, maximum and steps over dt since
+  // the start or ~reset.
+  static constexpr size_t kStepWindow = 10000;
+  RunStatistics step_ms_{0, kStepWindow};
+  double publish_ms_ = 0;
   std::deque<std::pair<ros::WallTime, double>> rtf_window_;  // (wall, sim time)
   ros::WallTime last_display_;
   std::atomic<double> sim_time_now_{0.0};  // for commands in ~as_fast_as_possible mode

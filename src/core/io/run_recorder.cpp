@@ -16,26 +16,8 @@ namespace needle_sim {
 
 namespace fs = std::filesystem;
 
-Percentiles percentiles(std::vector<double> v) {
-  Percentiles p;
-  if (v.empty()) return p;
-  std::sort(v.begin(), v.end());
-  auto at = [&](double q) {
-    const double idx = q * (v.size() - 1);
-    const size_t lo = static_cast<size_t>(std::floor(idx)), hi = static_cast<size_t>(std::ceil(idx));
-    return v[lo] + (idx - lo) * (v[hi] - v[lo]);
-  };
-  p.median = at(0.5);
-  p.p95 = at(0.95);
-  p.p99 = at(0.99);
-  p.p999 = at(0.999);
-  p.max = v.back();
-  p.mean = std::accumulate(v.begin(), v.end(), 0.0) / v.size();
-  return p;
-}
-
 RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, const Options& options)
-    : sim_(sim), options_(options) {
+    : sim_(sim), options_(options), step_ms_(1e3 * sim.dt()) {
   dir_ = dir;
   estimate_ = sim.hasTissue() && (options.error_estimate || sim.adaptation());
   target_error_ = sim.hasTissue() && sim.numTargets() > 0 &&
@@ -167,11 +149,11 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
   }
   csv_ << '\n';
 
-  step_ms_.push_back(ms);
-  forces_ms_.push_back(s.forces_ms);
-  assemble_ms_.push_back(s.assemble_ms);
-  factor_ms_.push_back(s.factor_ms);
-  solve_ms_.push_back(s.solve_ms);
+  step_ms_.add(ms);
+  forces_ms_.add(s.forces_ms);
+  assemble_ms_.add(s.assemble_ms);
+  factor_ms_.add(s.factor_ms);
+  solve_ms_.add(s.solve_ms);
   linear_iterations_ += s.linear_iterations;
   factorizations_ += s.factorizations;
   async_factorizations_ += s.async_factorizations;
@@ -200,7 +182,7 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
     eta_rel_max_ = std::max(eta_rel_max_, obs_.eta_relative);
   }
   if (sim_.adaptation()) {
-    adapt_ms_.push_back(s.adapt_ms());
+    adapt_ms_.add(s.adapt_ms());
     mesh_changes_ += s.mesh_changed;
     refined_total_ += s.refined;
     coarsened_total_ += s.coarsened;
@@ -210,7 +192,7 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
   max_constraint_points_ = std::max(max_constraint_points_, s.constraint_points);
   max_constraint_residual_ = std::max(max_constraint_residual_, s.constraint_residual);
   constraint_unconverged_ += s.constraint_converged ? 0 : 1;
-  constraint_ms_.push_back(s.constraint_ms);
+  constraint_ms_.add(s.constraint_ms);
   if (options_.vtu_every > 0 && obs_.step % options_.vtu_every == 0) writeSeriesStep();
 }
 
@@ -307,28 +289,16 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
   auto pj = [](const Percentiles& p) {
     return json{{"median", p.median}, {"p95", p.p95}, {"p99", p.p99}, {"p999", p.p999}, {"max", p.max}, {"mean", p.mean}};
   };
-  j["step_ms"] = pj(percentiles(step_ms_));
-  {
-    // Deadlines of a real-time run at this dt: steps that took longer than dt, and the
-    // longest run of them in a row.
-    long misses = 0, run = 0, longest = 0;
-    const double dt_ms = 1e3 * sim_.dt();
-    for (double ms : step_ms_) {
-      if (ms > dt_ms) {
-        ++misses;
-        longest = std::max(longest, ++run);
-      } else {
-        run = 0;
-      }
-    }
-    j["step_ms"]["deadline_ms"] = dt_ms;
-    j["step_ms"]["deadline_misses"] = misses;
-    j["step_ms"]["longest_miss_run"] = longest;
-  }
-  j["split_ms"] = {{"forces", pj(percentiles(forces_ms_))},
-                   {"assemble", pj(percentiles(assemble_ms_))},
-                   {"factor", pj(percentiles(factor_ms_))},
-                   {"solve", pj(percentiles(solve_ms_))}};
+  j["step_ms"] = pj(step_ms_.percentiles());
+  // Deadlines of a real-time run at this dt: steps that took longer than dt, and the longest
+  // run of them in a row.
+  j["step_ms"]["deadline_ms"] = step_ms_.deadline();
+  j["step_ms"]["deadline_misses"] = step_ms_.misses();
+  j["step_ms"]["longest_miss_run"] = step_ms_.longestMissRun();
+  j["split_ms"] = {{"forces", pj(forces_ms_.percentiles())},
+                   {"assemble", pj(assemble_ms_.percentiles())},
+                   {"factor", pj(factor_ms_.percentiles())},
+                   {"solve", pj(solve_ms_.percentiles())}};
   j["solver"] = {{"method", scene.solver.linear.method == LinearSolverSettings::Method::Pcg ? "pcg" : "direct"},
                  {"linear_iterations_total", linear_iterations_},
                  {"linear_iterations_max", max_linear_iterations_},
@@ -343,8 +313,8 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
   if (estimate_)
     j["error_estimate"] = {{"eta_global", eta_last_}, {"eta_max", eta_max_last_}, {"eta_relative_max", eta_rel_max_}};
   if (const auto* a = sim_.adaptation()) {
-    double total_adapt = std::accumulate(adapt_ms_.begin(), adapt_ms_.end(), 0.0);
-    double total_step = std::accumulate(step_ms_.begin(), step_ms_.end(), 0.0);
+    double total_adapt = adapt_ms_.sum();
+    double total_step = step_ms_.sum();
     j["adaptivity"] = {{"tissue_dofs_final", sim_.tissue().mesh().numDofs()},
                        {"tissue_dofs_max", max_tissue_dofs_},
                        {"elements_per_level", sim_.elementsPerLevel()},
@@ -359,7 +329,7 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                        {"mesh_changes", mesh_changes_},
                        {"cells_refined_total", refined_total_},
                        {"cells_coarsened_total", coarsened_total_},
-                       {"adapt_ms", pj(percentiles(adapt_ms_))},
+                       {"adapt_ms", pj(adapt_ms_.percentiles())},
                        {"adapt_share_of_run", total_step > 0 ? total_adapt / total_step : 0.0}};
   }
   if (sim_.interaction())
@@ -367,7 +337,7 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                         {"constraint_points_max", max_constraint_points_},
                         {"constraint_residual_max", max_constraint_residual_},
                         {"unconverged_steps", constraint_unconverged_},
-                        {"constraint_ms", pj(percentiles(constraint_ms_))}};
+                        {"constraint_ms", pj(constraint_ms_.percentiles())}};
   j["energy"] = {{"kinetic", sim_.kineticEnergy()}, {"elastic", sim_.elasticEnergy()}};
   json probes = json::object();
   for (int i = 0; i < sim_.numProbes(); ++i) {
