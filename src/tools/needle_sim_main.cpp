@@ -34,6 +34,7 @@
 #include "needle_sim/sim/command_replay.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/io/run_recorder.hpp"
+#include "needle_sim/scene/scene_keys.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
@@ -222,6 +223,24 @@ int checkCommand(const std::string& scene_path, const std::vector<std::string>& 
   }
 }
 
+// The scene's value keys as their modules declare them (scene/scene_keys.hpp): a table per
+// section, or only the sections named; Markdown for doc/scene_format.md.
+int keysCommand(const std::vector<std::string>& only, bool markdown) {
+  for (const SceneSection& s : sceneSections()) {
+    if (!only.empty() && std::find(only.begin(), only.end(), s.path) == only.end()) continue;
+    if (markdown) {
+      std::printf("%s", sceneKeysMarkdown(s).c_str());
+      continue;
+    }
+    std::printf("%s (%s)\n", s.path.c_str(), s.header.c_str());
+    for (const auto& d : s.keys)
+      std::printf("  %-28s %-24s %-12s %s\n", d.key.c_str(), (d.type() + (d.unit.empty() ? "" : " [" + d.unit + "]")).c_str(),
+                  d.required ? "required" : d.default_text.c_str(),
+                  d.kind == ParameterKind::Real || d.kind == ParameterKind::Integer ? d.range.text().c_str() : "");
+  }
+  return 0;
+}
+
 }  // namespace
 
 // roslaunch appends "__name:=..." and "__log:=..." to a node's arguments; they mean nothing
@@ -301,6 +320,12 @@ int main(int argc, char** argv) {
                   "a ParaView series every N steps: DIR/vtu/, DIR/tissue.pvd, DIR/needles.pvd (0: none)")
       ->check(CLI::NonNegativeNumber);
 
+  std::vector<std::string> key_sections;
+  bool keys_markdown = false;
+  auto* keys = app.add_subcommand("keys", "list the scene's value keys: type, unit, default, range (doc/scene_format.md)");
+  keys->add_option("section", key_sections, "only these sections (time, solver, tissue, tissue.grid, needle, needle.bevel, "
+                                            "interaction, adaptivity, brain_shift)");
+  keys->add_flag("--markdown", keys_markdown, "as the Markdown tables of doc/scene_format.md");
   auto* check = app.add_subcommand("check", "validate a scene and build its mesh, without running it");
   check->add_option("scene", scene_path, "scene file (YAML)")->required();
   check->add_option("--set", sets, "override a scene value: key.path=value (repeatable)");
@@ -378,7 +403,7 @@ int main(int argc, char** argv) {
   calibrate->add_option("--fit", cal.fit, "scene keys to fit, comma-separated (e.g. interaction.cutting_force,interaction.grip_pressure)")
       ->required();
   calibrate->add_option("--start", cal.starts, "start value of a fitted key: key=value (default: the scene's)");
-  calibrate->add_option("--bounds", cal.bounds, "bounds of a fitted key: key=lower:upper (default: from the scene's checks)");
+  calibrate->add_option("--bounds", cal.bounds, "bounds of a fitted key: key=lower:upper (default: from the key's declared range)");
   calibrate->add_option("--set", cal.sets, "override a fixed scene value (repeatable)");
   calibrate->add_option("--needle", cal.needle, "needle whose holder force is fitted (default: the first)");
   calibrate->add_option("--max-evaluations", cal.max_evaluations, "simulations the optimiser may run")
@@ -409,6 +434,7 @@ int main(int argc, char** argv) {
   try {
     if (*run) return runCommand(scene_path, out_dir, sets, quiet, rec_opts, bag_run);
     if (*check) return checkCommand(scene_path, sets);
+    if (*keys) return keysCommand(key_sections, keys_markdown);
     if (*bench) return benchCommand(bench_opts);
     if (*predict) return predictCommand(pred);
     if (*steer) return steerCommand(steer_opts);

@@ -58,7 +58,6 @@ TEST(GoalEstimate, ALinearFieldHasNoError) {
       const double at = side * Vec3(0.04, 0.02, 0.02)[d];
       dc.region.box.min[d] = at - 1e-4;
       dc.region.box.max[d] = at + 1e-4;
-      dc.key = "dirichlet";
       sc.tissue.dirichlet.push_back(dc);
     }
   Simulation sim(sc, withErrors());

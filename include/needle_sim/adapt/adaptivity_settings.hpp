@@ -2,6 +2,8 @@
 // Parameters of error-controlled adaptivity (scene section `adaptivity`). Absent section:
 // no estimator, no marking, no cost.
 #include <string>
+
+#include "needle_sim/core/parameters.hpp"
 #include <vector>
 
 namespace needle_sim {
@@ -33,6 +35,40 @@ struct AdaptivitySettings {
   bool coarsen = false;
   double theta_coarsen = 0.05;  // merge 8 children when sqrt(sum eta_c^2) < theta_coarsen max eta ...
   int coarsen_after = 3;        // ... at this many consecutive estimates (hysteresis)
+
+  // The `adaptivity` section's value keys (core/parameters.hpp); goal.targets is read by the
+  // scene loader, which also checks the rules that tie keys together.
+  static const Parameters<AdaptivitySettings>& parameters() {
+    using S = AdaptivitySettings;
+    static const Parameters<S> p =
+        Parameters<S>()
+            .choice("estimator", [](S& s) -> Estimator& { return s.estimator; }, {"spr", "goal"},
+                    "spr: the energy-norm SPR estimate (Zienkiewicz–Zhu) drives the mesh; goal: the displacement-error indicators of the targets in `goal.targets` do ([method.md](method.md#error-on-target-motion))")
+            .real("goal.tolerance", [](S& s) -> double& { return s.goal_tolerance; }, "m", Range::nonNegative(),
+                  "with `estimator: goal`, required and > 0: refine while a controlled target's error bound is above this; below it, only coarsening")
+            .choice("marking", [](S& s) -> Marking& { return s.marking; }, {"max", "bulk"},
+                    "max: η_e ≥ θ·max η (the paper's); bulk: Dörfler, θ of Σ η²")
+            .real("theta", [](S& s) -> double& { return s.theta; }, "", Range::openClosed(0, 1), "θ",
+                  true)
+            .integer("max_level", [](S& s) -> int& { return s.max_level; }, Range::closed(0, 6),
+                     "refinement levels above the scene's grid")
+            .integer("max_dofs", [](S& s) -> int& { return s.max_dofs; }, Range::closed(0, 100000000),
+                     "budget on all tissue DOFs (0: none)")
+            .real("tolerance", [](S& s) -> double& { return s.tolerance; }, "", Range::nonNegative(),
+                  "nothing is refined while η / ‖σ_h‖_E ≤ tolerance")
+            .integer("every_steps", [](S& s) -> int& { return s.every_steps; }, Range::closed(1, 1000000000),
+                     "estimate and adapt every N steps (and at once on every contact event)")
+            .real("rebuild_delay", [](S& s) -> double& { return s.rebuild_delay; }, "s", Range::closed(0, 10),
+                  "dynamic steps: build a changed mesh's body in the background and move to it this long after the decision (whole steps of the dt in use, at least one); 0: at once, on the stepping thread ([method.md](method.md#refinement-and-coarsening))")
+            .real("estimate_delay", [](S& s) -> double& { return s.estimate_delay; }, "s", Range::closed(0, 10),
+                  "dynamic steps, `spr` estimator, at most `rebuild_delay`: run each pass on a background thread from a copy of its step's state and take its decision up this long after it; the same run as passes on the stepping thread, without their cost on it; 0: on the stepping thread")
+            .flag("coarsen.enabled", [](S& s) -> bool& { return s.coarsen; }, "merge children back; coarsening runs only with `enabled: true`")
+            .real("coarsen.theta_coarsen", [](S& s) -> double& { return s.theta_coarsen; }, "", Range::open(0, 1),
+                  "merge 8 children when √(Σ η_c²) < theta_coarsen·max η (with `max` marking and coarsening: < θ/2) ...")
+            .integer("coarsen.after", [](S& s) -> int& { return s.coarsen_after; }, Range::closed(1, 1000000),
+                     "... at this many consecutive passes (hysteresis)");
+    return p;
+  }
 };
 
 // A static solve on an adaptive mesh (a load step, the brain shift) alternates solve and

@@ -7,6 +7,7 @@
 #include <optional>
 #include <string>
 
+#include "needle_sim/core/parameters.hpp"
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/geometry/triangle_mesh.hpp"
 
@@ -33,6 +34,35 @@ struct BrainShiftSettings {
   // shift").
   bool coarse_start = true;
   double tolerance = 1e-6;              // relative Newton residual per load step
+
+  // The `brain_shift` section's value keys (core/parameters.hpp); csf_level ('all' or a
+  // point) and skull.surface are read by the scene loader.
+  static const Parameters<BrainShiftSettings>& parameters() {
+    using S = BrainShiftSettings;
+    static const Parameters<S> p =
+        Parameters<S>()
+            .vector("gravity", [](S& s) -> Vec3& { return s.gravity; }, "m/s^2",
+                    "direction and size of the load, non-zero (supine patient: towards posterior)")
+            .optionalReal("density", [](S& s) -> std::optional<double>& { return s.density; }, "kg/m^3",
+                          Range::positive(), "of the load (default: the tissue's)")
+            .real("skull.gap", [](S& s) -> double& { return s.gap; }, "m", Range::nonNegative(),
+                  "skull = the undeformed organ surface offset outwards by this (or `skull.surface`)")
+            .flag("skull.enabled", [](S& s) -> bool& { return s.skull_contact; }, "unilateral skull contact during the shift")
+            .flag("skull.support", [](S& s) -> bool& { return s.skull_support; },
+                  "afterwards the skull keeps holding the brain where it touched it")
+            .optionalReal("target_shift", [](S& s) -> std::optional<double>& { return s.target_shift; }, "m",
+                          Range::positive(), "scale the load until `target` has moved this far (displacement control)")
+            .text("target", [](S& s) -> std::string& { return s.target; }, "the target of `target_shift` and `replan` (default: the first target)")
+            .flag("replan", [](S& s) -> bool& { return s.replan; },
+                  "intraoperative re-planning: after the shift every needle's trajectory is re-aimed through its entry point so that its planned final tip moves with `target`; needs a needle and a target ([method.md](method.md#brain-shift))")
+            .integer("load_steps", [](S& s) -> int& { return s.load_steps; }, Range::closed(1, 1000),
+                     "load steps from rest")
+            .flag("coarse_start", [](S& s) -> bool& { return s.coarse_start; },
+                  "on a uniformly refined immersed grid (`tissue.grid.refine` ≥ 1, no adaptivity) with `target_shift`: solve the shift roughly on the grid one level coarser first and start from its state and load scale ([method.md](method.md#brain-shift))")
+            .real("tolerance", [](S& s) -> double& { return s.tolerance; }, "", Range::open(0, 1),
+                  "relative Newton residual");
+    return p;
+  }
 };
 
 }  // namespace needle_sim

@@ -27,7 +27,8 @@ namespace needle_sim {
 
 struct CalibrationParameter {
   std::string key;
-  // NaN: the start from the scene (after --set), the bounds from the scene's validity checks.
+  // NaN: the start from the scene (after --set), the bounds from the key's declared range
+  // (scene/scene_keys.hpp).
   double start = std::numeric_limits<double>::quiet_NaN();
   double lower = std::numeric_limits<double>::quiet_NaN();
   double upper = std::numeric_limits<double>::quiet_NaN();

@@ -9,6 +9,7 @@
 #include <optional>
 #include <vector>
 
+#include "needle_sim/core/parameters.hpp"
 #include "needle_sim/fem/hex_mesh.hpp"
 #include "needle_sim/geometry/inside_test.hpp"
 
@@ -20,6 +21,23 @@ struct ImmersedGridSettings {
   int refine = 0;                  // uniform refinements of that grid (2^refine per axis)
   double min_fraction = 1e-3;
   int samples = 8;                 // rays per cell and axis for the volume fractions
+
+  // The value keys of an immersed tissue's `grid` (core/parameters.hpp); cells (a list of
+  // three counts) is read by the scene loader.
+  static const Parameters<ImmersedGridSettings>& parameters() {
+    using S = ImmersedGridSettings;
+    static const Parameters<S> p =
+        Parameters<S>()
+            .optionalReal("cell_size", [](S& s) -> std::optional<double>& { return s.cell_size; }, "m", Range::positive(),
+                          "`surface` only, instead of `cells`: cubic cells, the grid centred on the surface's box")
+            .integer("refine", [](S& s) -> int& { return s.refine; }, Range::closed(0, 6),
+                     "`surface` only: uniform refinements of that grid (2^refine per axis)")
+            .real("min_fraction", [](S& s) -> double& { return s.min_fraction; }, "", Range::openClosed(0, 1),
+                  "`surface` only: floor of a cell's stiffness and mass fraction")
+            .integer("samples", [](S& s) -> int& { return s.samples; }, Range::closed(1, 64),
+                     "`surface` only: rays per cell and axis for the volume fractions");
+    return p;
+  }
 };
 
 class ImmersedGrid {

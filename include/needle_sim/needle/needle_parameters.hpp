@@ -5,6 +5,7 @@
 #include <string>
 #include <vector>
 
+#include "needle_sim/core/parameters.hpp"
 #include "needle_sim/core/types.hpp"
 
 namespace needle_sim {
@@ -31,6 +32,20 @@ struct BevelParameters {
   double angle = 0;          // between the bevel face and the needle axis, (0, pi/2) [rad]
   double lateral_ratio = 0;  // lateral load / cutting strength (>= 0); the scene's default: bevelLateralRatio
   double orientation = 0;    // [rad]
+
+  // The `bevel` keys of a needle (core/parameters.hpp); a needle has a bevel when it has them.
+  static const Parameters<BevelParameters>& parameters() {
+    using S = BevelParameters;
+    static const Parameters<S> p =
+        Parameters<S>()
+            .real("angle", [](S& s) -> double& { return s.angle; }, "rad", Range::open(0, M_PI / 2),
+                  "angle between the bevel face and the needle axis; a `bevel` map needs it", true)
+            .real("lateral_ratio", [](S& s) -> double& { return s.lateral_ratio; }, "", Range::nonNegative(),
+                  "the tip's lateral load while it cuts, as a multiple of `interaction.cutting_force`; default (cos a − μ sin a)/(sin a + μ cos a), clamped at 0 (a the angle, μ = `interaction.friction`)")
+            .real("orientation", [](S& s) -> double& { return s.orientation; }, "rad", Range::any(),
+                  "the bevel's lateral direction in the tip frame: its y axis turned by this about the needle axis");
+    return p;
+  }
 };
 
 // The lateral-to-axial load ratio of a bevel face at `angle` to the axis cutting with face
@@ -59,6 +74,33 @@ struct NeedleParameters {
   Vec3 tip_moment = Vec3::Zero();       // [N m]
   Vec3 gravity = Vec3::Zero();          // [m/s^2]
   BevelParameters bevel;
+
+  // A needle entry's value keys (core/parameters.hpp); base.direction (a unit vector), the
+  // motion and the bevel are read by the scene loader.
+  static const Parameters<NeedleParameters>& parameters() {
+    using S = NeedleParameters;
+    static const Parameters<S> p =
+        Parameters<S>()
+            .text("name", [](S& s) -> std::string& { return s.name; },
+                  "`[A-Za-z0-9_]+`, unique; required in `needles` (it names CSV columns and ROS topics)")
+            .real("length", [](S& s) -> double& { return s.length; }, "m", Range::positive(), "from base to tip", true)
+            .real("radius", [](S& s) -> double& { return s.radius; }, "m", Range::positive(), "outer radius", true)
+            .real("inner_radius", [](S& s) -> double& { return s.inner_radius; }, "m", Range::nonNegative(),
+                  "a tube (cannula): 0 ≤ inner_radius < radius")
+            .real("young", [](S& s) -> double& { return s.young; }, "Pa", Range::positive(), "Young's modulus", true)
+            .real("poisson", [](S& s) -> double& { return s.poisson; }, "", Range::open(-1, 0.5), "Poisson's ratio", true)
+            .real("density", [](S& s) -> double& { return s.density; }, "kg/m^3", Range::positive(), "mass density", true)
+            .integer("elements", [](S& s) -> int& { return s.elements; }, Range::closed(1, 100000),
+                     "beam elements", true)
+            .vector("base.position", [](S& s) -> Vec3& { return s.base_position; }, "m",
+                    "base node at rest", true)
+            .real("base.roll", [](S& s) -> double& { return s.base_roll; }, "rad", Range::any(),
+                  "twist of the rest frame about the axis")
+            .vector("tip_force", [](S& s) -> Vec3& { return s.tip_force; }, "N", "external load at the tip (verification)")
+            .vector("tip_moment", [](S& s) -> Vec3& { return s.tip_moment; }, "N m", "external moment at the tip")
+            .vector("gravity", [](S& s) -> Vec3& { return s.gravity; }, "m/s^2", "gravitational acceleration on the needle");
+    return p;
+  }
 };
 
 }  // namespace needle_sim

@@ -13,6 +13,7 @@
 #include "needle_sim/adapt/adaptivity_settings.hpp"
 #include "needle_sim/brain/brain_shift_settings.hpp"
 #include "needle_sim/contact/interaction_settings.hpp"
+#include "needle_sim/core/parameters.hpp"
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/geometry/immersed_grid.hpp"
 #include "needle_sim/geometry/region.hpp"
@@ -80,6 +81,17 @@ struct Scene {
   std::optional<BrainShiftSettings> brain_shift;
 
   long numSteps() const;
+
+  // The `time` section's keys (core/parameters.hpp).
+  static const Parameters<Scene>& timeParameters() {
+    static const Parameters<Scene> p =
+        Parameters<Scene>()
+            .real("dt", [](Scene& s) -> double& { return s.dt; }, "s", Range::positive(),
+                  "time step (dynamic) or load step (static)", true)
+            .real("duration", [](Scene& s) -> double& { return s.duration; }, "s", Range::positive(),
+                  "simulated time, at most 1e9 steps; steps = ⌈duration/dt⌉", true);
+    return p;
+  }
 };
 
 }  // namespace needle_sim

@@ -2,6 +2,7 @@
 // How the bodies are advanced and solved (the scene's `solver` section): dynamic (one
 // linearised implicit Euler step per time step) or static (Newton to equilibrium), Rayleigh
 // damping, the static tolerance, the linear solver.
+#include "needle_sim/core/parameters.hpp"
 #include "needle_sim/solver/system_solver.hpp"
 
 namespace needle_sim {
@@ -16,6 +17,41 @@ struct SolverSettings {
   // "Static solves"): quadratic convergence under large rotations, at a dearer linear solve.
   bool static_rotation_tangent = false;
   LinearSolverSettings linear;
+
+  // The `solver` section's keys (core/parameters.hpp).
+  static const Parameters<SolverSettings>& parameters() {
+    static const Parameters<SolverSettings> p =
+        Parameters<SolverSettings>()
+            .choice("mode", [](SolverSettings& s) -> Mode& { return s.mode; }, {"dynamic", "static"},
+                    "dynamic: one linearised implicit Euler step per time step; static: Newton to equilibrium per step ([method.md](method.md#static-solves))")
+            .real("rayleigh.mass", [](SolverSettings& s) -> double& { return s.rayleigh_mass; }, "1/s",
+                  Range::nonNegative(), "α in the damping C = αM + βK")
+            .real("rayleigh.stiffness", [](SolverSettings& s) -> double& { return s.rayleigh_stiffness; }, "s",
+                  Range::nonNegative(), "β in the damping C = αM + βK")
+            .real("static.tolerance", [](SolverSettings& s) -> double& { return s.static_tolerance; }, "",
+                  Range::positive(), "relative residual (or relative Newton correction) at which a static solve stops")
+            .integer("static.max_iterations", [](SolverSettings& s) -> int& { return s.static_max_iterations; },
+                     Range::closed(1, 100000), "Newton iterations before a numerical failure")
+            .flag("static.rotation_tangent", [](SolverSettings& s) -> bool& { return s.static_rotation_tangent; },
+                  "Newton with the corotational tangent's rotation part (GMRES on each step): quadratic convergence under large rotations, dearer linear solves; needs `linear.method: pcg` ([method.md](method.md#static-solves))")
+            .choice("linear.method", [](SolverSettings& s) -> LinearSolverSettings::Method& { return s.linear.method; },
+                    {"direct", "pcg"}, "direct: refactorise every solve; pcg: CG on the exact matrix, preconditioned by an earlier factorisation ([method.md](method.md#time-integration))")
+            .real("linear.tolerance", [](SolverSettings& s) -> double& { return s.linear.tolerance; }, "",
+                  Range::open(0, 1), "CG relative residual")
+            .integer("linear.max_iterations", [](SolverSettings& s) -> int& { return s.linear.max_iterations; },
+                     Range::closed(1, 1000000), "CG iterations before the factor is refreshed and the solve repeated")
+            .integer("linear.refresh_iterations", [](SolverSettings& s) -> int& { return s.linear.refresh_iterations; },
+                     Range::closed(0, 1000000), "refactorise before the next solve when CG needed more than this")
+            .integer("linear.refactor_every", [](SolverSettings& s) -> int& { return s.linear.refactor_every; },
+                     Range::closed(0, 1000000), "also refactorise every N solves (0: only on demand)")
+            .choice("linear.ordering", [](SolverSettings& s) -> Ordering& { return s.linear.ordering; },
+                    {"auto", "amd", "metis"}, "CHOLMOD's fill-reducing ordering")
+            .flag("linear.async", [](SolverSettings& s) -> bool& { return s.linear.async; },
+                  "pcg: refresh the factor on a background thread while the steps go on with the old one ([method.md](method.md#time-integration)); false: on the stepping thread")
+            .integer("linear.async_lag", [](SolverSettings& s) -> int& { return s.linear.async_lag; },
+                     Range::closed(0, 1000000), "swap a background factor in this many solves after the request, waiting if it is late (deterministic); 0: as soon as it is ready (never waits; results vary within the CG tolerance)");
+    return p;
+  }
 };
 
 }  // namespace needle_sim

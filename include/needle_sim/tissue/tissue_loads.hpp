@@ -14,11 +14,13 @@ namespace needle_sim {
 
 // Marks the prescribed DOFs (3n) and moves them in x by their condition's displacement;
 // later conditions override earlier ones on shared nodes. Throws InputError (source, the
-// condition's key) when a region selects no node.
+// condition's key within the tissue's parameters, "dirichlet[i].region") when a region
+// selects no node.
 std::vector<char> prescribeDirichlet(const HexMesh& mesh, const std::vector<DirichletCondition>& conditions,
                                      const std::string& source, VecX& x);
 // Constant external nodal forces (3n): gravity and body force by nodal volume, tractions.
-// Throws InputError when a traction's region holds no boundary face.
+// Throws InputError (source, "tractions[i].region") when a traction's region holds no
+// boundary face.
 VecX tissueLoads(const HexMesh& mesh, const VecX& nodal_volume, const TissueParameters& p, const std::string& source);
 // Adds the nodal forces of a uniform traction t on one boundary face to out (3n).
 void addFaceTraction(const HexMesh& mesh, const BoundaryFace& face, const Vec3& t, VecX& out);

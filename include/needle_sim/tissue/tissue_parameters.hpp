@@ -5,6 +5,7 @@
 #include <string>
 #include <vector>
 
+#include "needle_sim/core/parameters.hpp"
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/fem/material.hpp"
 #include "needle_sim/geometry/region.hpp"
@@ -15,14 +16,12 @@ struct DirichletCondition {
   Region region;
   Vec3 displacement = Vec3::Zero();
   std::array<bool, 3> components{{true, true, true}};  // which of x, y, z are prescribed
-  std::string key;                                     // e.g. "tissue.dirichlet[0]", for messages
 };
 
 // Uniform traction (Pa) on the boundary faces lying in a region.
 struct TractionLoad {
   Region region;
   Vec3 traction = Vec3::Zero();
-  std::string key;
 };
 
 struct TissueParameters {
@@ -31,6 +30,23 @@ struct TissueParameters {
   Vec3 body_force = Vec3::Zero();  // N/m^3
   std::vector<DirichletCondition> dirichlet;
   std::vector<TractionLoad> tractions;
+
+  // The keys of the `tissue` section that are values (core/parameters.hpp); the geometry, the
+  // grid and the lists of conditions and tractions are read by the scene loader.
+  static const Parameters<TissueParameters>& parameters() {
+    using S = TissueParameters;
+    static const Parameters<S> p =
+        Parameters<S>()
+            .real("material.young", [](S& s) -> double& { return s.material.young; }, "Pa", Range::positive(),
+                  "Young's modulus E", true)
+            .real("material.poisson", [](S& s) -> double& { return s.material.poisson; }, "", Range::open(-1, 0.5),
+                  "Poisson's ratio ν", true)
+            .real("material.density", [](S& s) -> double& { return s.material.density; }, "kg/m^3", Range::positive(),
+                  "ρ", true)
+            .vector("gravity", [](S& s) -> Vec3& { return s.gravity; }, "m/s^2", "body load ρg")
+            .vector("body_force", [](S& s) -> Vec3& { return s.body_force; }, "N/m^3", "body load per volume");
+    return p;
+  }
 };
 
 }  // namespace needle_sim

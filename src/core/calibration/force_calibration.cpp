@@ -11,6 +11,7 @@
 #include <future>
 
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/scene/scene_keys.hpp"
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/scene/scene_overrides.hpp"
@@ -87,12 +88,16 @@ std::vector<CalibrationParameter> resolveParameters(const CalibrationSettings& s
   for (CalibrationParameter p : s.parameters) {
     for (const auto& q : out)
       if (q.key == p.key) throw InputError(s.scene, p.key, "named twice in --fit");
+    // Only declared real-valued keys (core/parameters.hpp; `needle_sim keys` lists them).
+    const std::optional<ParameterDeclaration> decl = findSceneKey(p.key);
+    if (decl && decl->kind != ParameterKind::Real)
+      throw InputError(s.scene, p.key,
+                       decl->kind == ParameterKind::Integer ? "not a real-valued key (an integer)" : "not a number (a " + decl->type() + ")");
     if (!std::isfinite(p.start)) {
       const YAML::Node n = lookup(root, p.key);
       if (!n || n.IsNull()) {
         // Absent from the file: a key the scene does not know, or an optional one.
-        const std::string why = rejects(s, p.key, 1.0);
-        if (!why.empty() && !rejects(s, p.key, 0.0).empty()) throw InputError(s.scene, p.key, "not a key this scene accepts: " + why);
+        if (!decl) throw InputError(s.scene, p.key, "not a key this scene accepts (`needle_sim keys` lists the value keys)");
         throw InputError(s.scene, p.key, "the scene has no value for it: give its start with --start " + p.key + "=VALUE");
       }
       if (!n.IsScalar()) throw InputError(s.scene, p.key, "not a number (a list or a map): only real-valued keys can be fitted");
@@ -102,30 +107,22 @@ std::vector<CalibrationParameter> resolveParameters(const CalibrationSettings& s
       if (end == text.c_str() || *end || !std::isfinite(p.start))
         throw InputError(s.scene, p.key, "not a number ('" + text + "'): only real-valued keys can be fitted");
     }
-    // Known to the scene and valid at the start; real-valued (a fraction is accepted).
+    if (!decl) throw InputError(s.scene, p.key, "not a declared value key (`needle_sim keys` lists them)");
+    // Known to the scene and valid at the start (with every other value as given).
     if (const std::string why = rejects(s, p.key, p.start); !why.empty())
       throw InputError(s.scene, p.key, "the start value " + num(p.start) + " is rejected: " + why);
+    // Bounds where not given: the declared range, nudged inward by 1e-3 scales at an open end,
+    // within 10 scales of the start. (A key tied to another by a rule, such as inner_radius
+    // below radius, needs --bounds.)
     const double sc = scaleOf(p);
-    if (const std::string why = rejects(s, p.key, p.start + 1e-3 * sc + 1e-9); !why.empty())
-      throw InputError(s.scene, p.key, "not a real-valued key (" + why + ")");
-    // Bounds from the scene's validity checks where not given: a key that takes negative
-    // values ranges 10 scales either side; one that does not starts at 0, or just above if 0
-    // is rejected; the upper bound is 10 scales above the start, or the largest accepted
-    // value below that (by bisection).
+    const Range& range = decl->range;
     if (!std::isfinite(p.lower)) {
-      if (rejects(s, p.key, p.start - 10 * sc).empty()) p.lower = p.start - 10 * sc;
-      else if (p.start >= 0 && rejects(s, p.key, 0.0).empty()) p.lower = 0.0;
-      else p.lower = p.start >= 0 ? 1e-3 * sc : p.start;
+      p.lower = p.start - 10 * sc;
+      if (std::isfinite(range.lo)) p.lower = std::max(p.lower, range.lo_closed ? range.lo : range.lo + 1e-3 * sc);
     }
     if (!std::isfinite(p.upper)) {
-      double ok = p.start, bad = p.start + 10 * sc;
-      if (rejects(s, p.key, bad).empty()) ok = bad;
-      else
-        for (int k = 0; k < 30; ++k) {
-          const double mid = 0.5 * (ok + bad);
-          (rejects(s, p.key, mid).empty() ? ok : bad) = mid;
-        }
-      p.upper = ok;
+      p.upper = p.start + 10 * sc;
+      if (std::isfinite(range.hi)) p.upper = std::min(p.upper, range.hi_closed ? range.hi : range.hi - 1e-3 * sc);
     }
     if (!(p.lower < p.upper)) throw InputError(s.scene, p.key, "empty bounds [" + num(p.lower) + ", " + num(p.upper) + "]");
     if (p.start < p.lower || p.start > p.upper)

@@ -38,6 +38,8 @@ AdaptiveTissue::AdaptiveTissue(const Scene& scene) : scene_(&scene) {
     }
   } catch (const std::invalid_argument& e) {
     throw InputError(scene.file, "tissue.geometry", std::string("invalid mesh: ") + e.what());
+  } catch (const InputError& e) {  // a region of the tissue's parameters: its key in the scene
+    throw InputError(scene.file, "tissue." + e.key(), e.problem());
   }
   if (immersed) organ_ = std::make_unique<EmbeddedSurface>(scene.tissue.geometry.surface, body_->mesh());
 }

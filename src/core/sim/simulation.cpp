@@ -9,6 +9,7 @@
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/core/stopwatch.hpp"
+#include "needle_sim/scene/scene_check.hpp"
 #include "needle_sim/sim/coupled_step.hpp"
 
 namespace needle_sim {
@@ -45,6 +46,7 @@ class Simulation::ShiftTissue : public PreStepTissue {
 };
 
 Simulation::Simulation(const Scene& scene, const Options& options) : scene_(scene), options_(options), dt_(scene.dt) {
+  checkScene(scene_);  // a scene built in code passes the loader's checks too
   for (const auto& n : scene.needles) needles_.push_back(std::make_unique<NeedleBody>(n, scene.solver));
   if (!scene.has_tissue) return;
   tissue_ = std::make_unique<AdaptiveTissue>(scene_);

@@ -15,7 +15,8 @@ std::vector<char> prescribeDirichlet(const HexMesh& mesh, const std::vector<Diri
   const int n = mesh.numNodes();
   const double tol = regionTolerance(mesh);
   std::vector<char> prescribed(3 * n, 0);
-  for (const auto& dc : conditions) {
+  for (size_t k = 0; k < conditions.size(); ++k) {
+    const DirichletCondition& dc = conditions[k];
     int count = 0;
     for (int i = 0; i < n; ++i)
       if (dc.region.contains(mesh.node(i), tol)) {
@@ -26,7 +27,7 @@ std::vector<char> prescribeDirichlet(const HexMesh& mesh, const std::vector<Diri
             x[3 * i + d] = mesh.node(i)[d] + dc.displacement[d];
           }
       }
-    if (count == 0) throw InputError(source, dc.key + ".region", "selects no grid node of the tissue");
+    if (count == 0) throw InputError(source, "dirichlet[" + std::to_string(k) + "].region", "selects no grid node of the tissue");
   }
   return prescribed;
 }
@@ -56,7 +57,8 @@ VecX tissueLoads(const HexMesh& mesh, const VecX& vol, const TissueParameters& p
   if (p.tractions.empty()) return f;
   const double tol = regionTolerance(mesh);
   const auto faces = mesh.boundaryFaces();
-  for (const auto& tl : p.tractions) {
+  for (size_t k = 0; k < p.tractions.size(); ++k) {
+    const TractionLoad& tl = p.tractions[k];
     int count = 0;
     for (const auto& face : faces) {
       bool inside = true;
@@ -65,7 +67,7 @@ VecX tissueLoads(const HexMesh& mesh, const VecX& vol, const TissueParameters& p
       ++count;
       addFaceTraction(mesh, face, tl.traction, f);
     }
-    if (count == 0) throw InputError(source, tl.key + ".region", "contains no boundary face of the tissue");
+    if (count == 0) throw InputError(source, "tractions[" + std::to_string(k) + "].region", "contains no boundary face of the tissue");
   }
   return f;
 }
