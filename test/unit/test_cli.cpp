@@ -537,6 +537,9 @@ TEST(Cli, AxialForceHasOneSignInEveryReport) {
   ASSERT_GT(k, 400);
   EXPECT_NEAR(measured / k, cutting, 1e-3 * std::abs(cutting));
 
+#ifdef NEEDLE_SIM_SANITIZED
+  return;  // three more replays for calibrate: the regular build checks its sign
+#endif
   // calibrate reads the same record: at the values that made it, the residual is tiny (a
   // flipped sign leaves twice the force).
   const Result c = runTool("calibrate " + scene + " --data '" + merged.string() +
