@@ -13,7 +13,6 @@ Sample run (about 4 minutes on the 2-core machine, most of it the 32x16x16 refer
 writes results/adaptivity_study/{study.csv, study.md, runtime_vs_error.png} and one run
 directory per configuration (kept: --reuse skips runs whose summary.json says ok).
 """
-import csv
 import math
 import os
 import sys
@@ -24,6 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from run_outputs import names  # noqa: E402
 from study_runs import SCENES, parse_args, run_all, write_csv  # noqa: E402
 
 
@@ -41,22 +41,19 @@ RUNS = [
 REFERENCE = "uniform 32x16x16"
 
 
-def probe_series(run_dir):
-    with open(os.path.join(run_dir, "timeseries.csv"), newline="") as f:
-        rows = list(csv.DictReader(f))
-    names = [k[:-3] for k in rows[0] if k.endswith("_ux")]
-    series = {n: [(float(r[n + "_ux"]), float(r[n + "_uy"]), float(r[n + "_uz"])) for r in rows] for n in names}
-    return rows, series
+def probe_series(summary, rows):
+    """Each probe's displacement per step (the probes named in summary.json)."""
+    return {n: [(float(r[n + "_ux"]), float(r[n + "_uy"]), float(r[n + "_uz"])) for r in rows]
+            for n in names(summary, "probes")}
 
 
 def main():
     args = parse_args(__doc__, "adaptivity_study")
 
     results = {}
-    for name, (summary, d, _) in run_all(args.tool, SCENES, args.out, [(n, sc, [a for x in sets for a in ("--set", x)])
-                                                                        for n, sc, sets in RUNS], args.reuse).items():
-        rows, series = probe_series(d)
-        results[name] = (summary, rows, series)
+    for name, (summary, _, rows) in run_all(args.tool, SCENES, args.out, [(n, sc, [a for x in sets for a in ("--set", x)])
+                                                                           for n, sc, sets in RUNS], args.reuse).items():
+        results[name] = (summary, rows, probe_series(summary, rows))
 
     _, ref_rows, ref = results[REFERENCE]
     umax = max(math.sqrt(sum(c * c for c in u)) for s in ref.values() for u in s)

@@ -11,7 +11,8 @@ left STN, cannula withdrawn, the shaft friction from measured values (dbs_coarse
 For both, the meshes: uniform coarse (16 mm), uniform fine (8 mm), adaptive (SPR, theta 0.6)
 and goal-oriented adaptive (on the STN), and with --reference a uniform 4 mm mesh, finer
 than fine, as the reference. Per run: the STN's motion since the shift, the electrode
-tip-STN distance, the cannula's axial force on its holder (what a force sensor reads), DOFs
+tip-STN distance, the cannula's axial force on its holder (a force sensor's reading: negative
+when the tissue resists), DOFs
 and times; the goal-oriented bound on the STN's displacement error (coarse, adaptive and goal
 runs) against its true error (the difference to the reference, or to fine without it).
 
@@ -41,6 +42,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import package_paths  # noqa: E402
+from run_outputs import axial_force_label  # noqa: E402
 from study_runs import SCENES, slug, write_csv  # noqa: E402
 
 TARGET, ELECTRODE, CANNULA = "STN_L", "electrode", "cannula"
@@ -86,8 +88,9 @@ def vec(r, prefix):
 
 def series(rows):
     """Per step: STN motion since step 0 [mm], electrode tip-STN distance [mm], the cannula's
-    and the electrode's axial holder push [N] (+ pushes the needle in: base force along the
-    needle's axis), the STN bound [mm] (NaN without one), the STN position [m]."""
+    and the electrode's axial force on the holder [N] (the columns <needle>_axial_force, what
+    a force sensor reads: negative when the tissue resists), the STN bound [mm] (NaN without
+    one), the STN position [m]."""
     x0 = vec(rows[0], f"{TARGET}_")
     out = {"step": [], "motion": [], "distance": [], "cannula": [], "electrode": [], "bound": [], "position": []}
     for r in rows:
@@ -97,8 +100,7 @@ def series(rows):
         out["motion"].append(1000 * math.dist(x, x0))
         out["distance"].append(1000 * float(r[f"{TARGET}_dist_{ELECTRODE}"]))
         for n in (CANNULA, ELECTRODE):
-            f, d = vec(r, f"{n}_base_f"), vec(r, f"{n}_dir_")
-            out[n].append(sum(a * b for a, b in zip(f, d)))
+            out[n].append(float(r[f"{n}_axial_force"]))
         b = r.get(f"{TARGET}_err_bound", "nan")
         out["bound"].append(1000 * float(b) if b not in ("", "nan") else float("nan"))
     return out
@@ -144,8 +146,8 @@ def main():
                 "stn_motion_max_mm": max(s["motion"]),
                 "stn_motion_final_mm": s["motion"][-1],
                 "final_distance_mm": s["distance"][-1],
-                "cannula_push_max_N": max(s[CANNULA]),
-                "cannula_pull_max_N": -min(s[CANNULA]),
+                "cannula_axial_force_min_N": min(s[CANNULA]),  # the insertion the tissue resisted most
+                "cannula_axial_force_max_N": max(s[CANNULA]),
                 "unconverged_steps": summary.get("interaction", {}).get("unconverged_steps"),
             })
             if ref is not None:
@@ -154,7 +156,8 @@ def main():
                 row["stn_true_error_max_mm"] = max(err)
                 row["stn_true_error_final_mm"] = err[-1]
                 row["final_distance_vs_ref_mm"] = s["distance"][-1] - ref["distance"][-1]
-                row["cannula_push_max_vs_ref"] = max(s[CANNULA]) / max(ref[CANNULA]) if max(ref[CANNULA]) > 0 else float("nan")
+                row["cannula_axial_force_min_vs_ref"] = (min(s[CANNULA]) / min(ref[CANNULA]) if min(ref[CANNULA]) < 0
+                                                         else float("nan"))
                 if has_bound:
                     b = s["bound"][:n]
                     valid = [k for k in range(n) if not math.isnan(b[k])]
@@ -197,7 +200,7 @@ def plots(out, results, meshes, reference):
         for name, key, ylabel, title in [
             ("stn_motion", "motion", "STN motion since the shift [mm]", "left STN: motion during insertion and withdrawal"),
             ("distance", "distance", "electrode tip - STN distance [mm]", "electrode tip to the left STN"),
-            ("holder_force", CANNULA, "cannula: axial push of the holder [N]", "what the cannula's force sensor reads (+ pushes in)"),
+            ("holder_force", CANNULA, "cannula: " + axial_force_label("N"), "what the cannula's force sensor reads"),
         ]:
             fig, ax = plt.subplots(figsize=(7.5, 4.5))
             for label, s in data.items():
@@ -251,7 +254,7 @@ def sensitivity(args):
         if rows:
             s = series(rows)
             row.update({"final_distance_mm": s["distance"][-1], "stn_motion_max_mm": max(s["motion"]),
-                        "cannula_push_max_N": max(s[CANNULA])})
+                        "cannula_axial_force_min_N": min(s[CANNULA])})
         table.append(row)
     write_csv(os.path.join(args.out, "sensitivity.csv"), table)
     keys = list(table[0].keys())

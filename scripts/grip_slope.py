@@ -2,9 +2,9 @@
 """The grip pressure's friction per metre, refined (issue #21's verification): the phantom's
 straight insertion (2 cm at 1 cm/s, hold, withdrawal) with and without a grip pressure p, on
 uniform tissue meshes 8x4x4 and 16x8x8 (and 32x16x16 with --fine), with shaft points every
-2, 1 and 0.5 mm of cut path. The slope of the holder's axial force against depth (8-18 mm)
-must grow by mu 2 pi r p (Coulomb friction on the pressure on the wall, doc/method.md "Shaft
-grip"). The grip's friction is carried by the shaft points, each with the pressure over its
+2, 1 and 0.5 mm of cut path. The slope against depth (8-18 mm) of the axial force on the
+holder (negative while the tissue resists: the slope is negative) must steepen by mu 2 pi r p
+(Coulomb friction on the pressure on the wall, doc/method.md "Shaft grip"). The grip's friction is carried by the shaft points, each with the pressure over its
 spacing: the force grows in steps of one spacing, and the fitted slope's difference from
 mu 2 pi r p is that staircase's, which shrinks with the spacing (the tissue mesh does not
 enter a straight insertion's axial friction). test_constraint_solve checks 8x4x4 at 1 mm to
@@ -14,7 +14,6 @@ enter a straight insertion's axial friction). test_constraint_solve checks 8x4x4
     scripts/grip_slope.py --out /tmp/grip --fine     # + 32x16x16, about 15 min more
 """
 import argparse
-import csv
 import math
 import os
 import subprocess
@@ -22,20 +21,20 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import package_paths  # noqa: E402
+from run_outputs import load_rows, load_summary, names  # noqa: E402
 
 
-def slope(run_dir, needle="needle"):
-    """Least-squares slope of the axial holder force (positive: pushing) against depth."""
+def slope(run_dir):
+    """Least-squares slope against depth of the axial force on the holder (the column
+    <needle>_axial_force: negative when the tissue resists, so the slope is negative)."""
+    needle = names(load_summary(run_dir), "needles")[0]
     xs, ys = [], []
-    with open(os.path.join(run_dir, "timeseries.csv")) as f:
-        for r in csv.DictReader(f):
-            t = float(r["t"])
-            depth = 0.01 * t - 0.003  # the tip enters at t = 0.3 s
-            if 0.008 < depth < 0.018:
-                fvec = [float(r[f"{needle}_base_f{c}"]) for c in "xyz"]
-                dvec = [float(r[f"{needle}_dir_{c}"]) for c in "xyz"]
-                xs.append(depth)
-                ys.append(sum(a * b for a, b in zip(fvec, dvec)))
+    for r in load_rows(run_dir):
+        t = float(r["t"])
+        depth = 0.01 * t - 0.003  # the tip enters at t = 0.3 s
+        if 0.008 < depth < 0.018:
+            xs.append(depth)
+            ys.append(float(r[f"{needle}_axial_force"]))
     n = len(xs)
     mx, my = sum(xs) / n, sum(ys) / n
     return sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sum((x - mx) ** 2 for x in xs)
@@ -64,9 +63,8 @@ def main():
                 print("+", " ".join(cmd), file=sys.stderr)
                 subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
                 s[p] = slope(d)
-            # The sign of base_f along the tip direction is fixed by the recorder; the grip's
-            # part is the difference of the two runs whatever that sign.
-            added = abs(s[a.pressure] - s[0.0])
+            # The grip holds the needle back more: the (negative) slope steepens by its part.
+            added = s[0.0] - s[a.pressure]
             rows.append((m, sp, s[0.0], s[a.pressure], added, (added - expected) / expected))
     os.makedirs(a.out, exist_ok=True)
     with open(os.path.join(a.out, "grip_slope.md"), "w") as f:

@@ -1,6 +1,7 @@
 #!/usr/bin/python3
 """Plot of a calibration (needle_sim calibrate): DIR/fit.png from DIR/fit.csv, the measured,
-start and fitted axial holder force against time and against the base's advance.
+start and fitted axial force on the holder against time and against the base's advance (the
+sign of every report: a force sensor's reading, negative when the tissue resists).
 
     scripts/plot_calibration.py results/calibration
 """
@@ -13,6 +14,9 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from run_outputs import axial_force_label  # noqa: E402
 
 
 def main():
@@ -38,7 +42,7 @@ def main():
         a.plot(x, [v * 1e3 for v in col["start"]], "--", color="tab:blue", label="start values")
         a.plot(x, [v * 1e3 for v in col["fitted"]], "-", color="tab:red", label="fitted")
         a.set_xlabel(label)
-        a.set_ylabel("axial holder force [mN] (+: pushes in)")
+        a.set_ylabel(axial_force_label("mN"), fontsize=8)
         a.grid(alpha=0.3)
         a.legend()
     fig.suptitle(title, fontsize=9)

@@ -17,7 +17,6 @@ finest run: all probes along the path, all probes on the radial line.
 """
 import argparse
 import csv
-import json
 import math
 import os
 import sys
@@ -26,6 +25,9 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from run_outputs import load_summary, names  # noqa: E402
 
 
 def load(run_dir):
@@ -37,15 +39,14 @@ def load(run_dir):
         sys.exit(f"plot_probes: cannot read {path}: {e.strerror}")
     if not rows:
         sys.exit(f"plot_probes: {path} has no rows")
-    summary_path = os.path.join(run_dir, "summary.json")
-    name, dofs = os.path.basename(os.path.normpath(run_dir)), rows[0].get("dofs", "?")
-    if os.path.exists(summary_path):
-        with open(summary_path) as f:
-            s = json.load(f)
-        name = s.get("scene", {}).get("name", name)
-        dofs = s.get("tissue", {}).get("dofs", dofs)
-    probes = sorted({k[: -len("_ux")] for k in rows[0] if k.endswith("_ux")})
-    return {"name": name, "dofs": dofs, "rows": rows, "probes": probes}
+    try:
+        s = load_summary(run_dir)
+        probes = names(s, "probes")
+    except (OSError, ValueError, KeyError) as e:
+        sys.exit(f"plot_probes: cannot read {run_dir}/summary.json: {e}")
+    name = s.get("scene", {}).get("name", os.path.basename(os.path.normpath(run_dir)))
+    dofs = s.get("tissue", {}).get("dofs", rows[0].get("dofs", "?"))
+    return {"name": name, "dofs": dofs, "rows": rows, "probes": sorted(probes)}
 
 
 def series(run, probe, component):

@@ -3,18 +3,21 @@
 the phantom insertion, from DIR/timeseries.csv:
   - probe displacement magnitude against time (every probe),
   - the tissue's DOFs against time (the adaptive mesh following the needle),
-  - the axial force of each needle on its holder against time (what a force sensor reads).
-Writes DIR/run.png and prints its path.
+  - the axial force of each needle on its holder against time (what a force sensor reads:
+    the column <needle>_axial_force, negative when the tissue resists the insertion).
+The names come from DIR/summary.json, in scene order. Writes DIR/run.png and prints its path.
 
     scripts/plot_run.py results/phantom_insertion_adaptive
 """
 import argparse
-import csv
 import math
 import os
 import sys
 
 import matplotlib
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from run_outputs import axial_force_label, load_rows, load_summary, names  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -29,15 +32,16 @@ def main():
     if not os.path.exists(path):
         print("plot_run: no %s (did the run finish?)" % path, file=sys.stderr)
         return 2
-    with open(path) as f:
-        rows = list(csv.DictReader(f))
+    try:
+        summary, rows = load_summary(a.dir), load_rows(a.dir)
+        probes, needles = names(summary, "probes"), names(summary, "needles")
+    except (OSError, ValueError, KeyError) as e:
+        print("plot_run: cannot read the run in %s: %s" % (a.dir, e), file=sys.stderr)
+        return 2
     if not rows:
         print("plot_run: %s has no rows" % path, file=sys.stderr)
         return 2
-    cols = rows[0].keys()
     t = [float(r["t"]) for r in rows]
-    probes = sorted({c[:-3] for c in cols if c.endswith("_ux")} - {c[:-3] for c in cols if c.endswith("_tip_x")})
-    needles = sorted({c[: -len("_tip_x")] for c in cols if c.endswith("_tip_x")})
     fig, ax = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
     for p in probes:
         u = [math.sqrt(sum(float(r[p + "_u" + d]) ** 2 for d in "xyz")) * 1e6 for r in rows]
@@ -49,15 +53,8 @@ def main():
     ax[1].plot(t, [int(r[dofs_col]) for r in rows], color="k", lw=1)
     ax[1].set_ylabel("DOFs (all bodies)")
     for n in needles:
-        # base_f: the holder's force on the needle; the sensor reads its opposite. Axial:
-        # along the tip direction (the needle is straight in these scenes).
-        fa = []
-        for r in rows:
-            f = [-float(r["%s_base_f%s" % (n, d)]) for d in "xyz"]
-            dvec = [float(r["%s_dir_%s" % (n, d)]) for d in "xyz"]
-            fa.append(1e3 * sum(x * y for x, y in zip(f, dvec)))
-        ax[2].plot(t, fa, label=n, lw=1)
-    ax[2].set_ylabel("axial force on the holder [mN]")
+        ax[2].plot(t, [1e3 * float(r[n + "_axial_force"]) for r in rows], label=n, lw=1)
+    ax[2].set_ylabel(axial_force_label("mN"), fontsize=9)
     ax[2].set_xlabel("t [s]")
     if needles:
         ax[2].legend(fontsize=7)

@@ -22,7 +22,8 @@ def main():
     a = ap.parse_args()
     try:  # the run's files first: a bad directory is reported without loading matplotlib
         with open(os.path.join(a.dir, "summary.json")) as f:
-            needles = json.load(f)["needles"]
+            summary = json.load(f)
+        needles = {n: summary["needles"][n] for n in summary["names"]["needles"]}  # scene order
         with open(os.path.join(a.dir, "timeseries.csv")) as f:
             rows = list(csv.DictReader(f))
     except (OSError, ValueError, KeyError) as e:

@@ -12,8 +12,9 @@ cell, as text: equal to the last printed digit. Wall times (keys and columns end
 `ms`, `_s` of timings, shares of the run) and the counts of waits for background threads
 (pass_waits, rebuild_waits: how often the stepping thread was ahead of them, which depends
 on the machine's load, not on the results) are not compared. `--allow` names columns or
-keys whose change is expected (a sign convention), listed in the report. Exit status 0 when
-the records agree, 1 when they do not.
+keys whose change is expected (a sign convention), or whose addition or removal is (a column
+renamed: the old name and the new one), listed in the report; columns on both sides are
+compared by name. Exit status 0 when the records agree, 1 when they do not.
 """
 import argparse
 import csv
@@ -115,7 +116,9 @@ def compare_json(a, b, path, diffs, allow):
                 continue
             p = path + "." + k if path else k
             if k not in a or k not in b:
-                diffs.append("%s: only in %s" % (p, "after" if k not in a else "before"))
+                side = "after" if k not in a else "before"
+                allowed = any(re.fullmatch(x, p) for x in allow)
+                diffs.append("%s%s: only in %s" % ("allowed " if allowed else "", p, side))
                 continue
             compare_json(a[k], b[k], p, diffs, allow)
     elif isinstance(a, list) and isinstance(b, list):
@@ -139,21 +142,28 @@ def compare_csv(fa, fb, diffs, allow, label):
             diffs.append("%s: one is empty" % label)
         return
     ha, hb = ra[0], rb[0]
+    is_allowed = lambda col: any(re.fullmatch(p, label + ":" + col) for p in allow)
     if ha != hb:
-        diffs.append("%s: header %s -> %s" % (label, ",".join(ha), ",".join(hb)))
-        return
+        # Columns added or removed: allowed ones are listed, any other is a difference; a
+        # column on both sides is compared by name wherever it stands.
+        only = [(c, "before") for c in ha if c not in hb] + [(c, "after") for c in hb if c not in ha]
+        for col, side in only:
+            diffs.append("%s%s: column %s only in %s" % ("allowed " if is_allowed(col) else "", label, col, side))
+        common = [c for c in ha if c in hb]
+        if [c for c in ha if c in common] != [c for c in hb if c in common]:
+            diffs.append("%s: the common columns changed order" % label)
     if len(ra) != len(rb):
         diffs.append("%s: %d -> %d rows" % (label, len(ra) - 1, len(rb) - 1))
-    keep = [i for i, c in enumerate(ha) if not SKIP_KEY.search(c)]
+    keep = [(i, hb.index(c)) for i, c in enumerate(ha) if c in hb and not SKIP_KEY.search(c)]
     allowed = set()
     for r, (x, y) in enumerate(zip(ra[1:], rb[1:]), start=1):
-        for i in keep:
-            if i < len(x) and i < len(y) and x[i] != y[i]:
+        for i, j in keep:
+            if i < len(x) and j < len(y) and x[i] != y[j]:
                 col = ha[i]
-                if any(re.fullmatch(p, label + ":" + col) for p in allow):
+                if is_allowed(col):
                     allowed.add(col)
                     continue
-                diffs.append("%s row %d (%s=%s) column %s: %s -> %s" % (label, r, ha[0], x[0], col, x[i], y[i]))
+                diffs.append("%s row %d (%s=%s) column %s: %s -> %s" % (label, r, ha[0], x[0], col, x[i], y[j]))
                 if len(diffs) > 40:
                     return
     for col in sorted(allowed):

@@ -26,11 +26,12 @@ int main(int argc, char** argv) {
     while (sim.time() < 0.5 - 1e-12) sim.step();
 
     // 3. Observables: positions, the force on the holder (in the needle's base frame, x along
-    //    the needle), insertion state, targets; computed once, here, for every consumer.
+    //    the needle: the axial force, negative while the tissue resists), insertion state,
+    //    targets; computed once, here, for every consumer.
     const Observables o = observe(sim);
     const NeedleObservation& n = o.needles[0];
     std::printf("t = %.3f s: tip (%.4f, %.4f, %.4f) m, %s, axial holder force %.4f N, %d constraint points\n",
-                o.time, n.tip.x(), n.tip.y(), n.tip.z(), toString(n.state), n.holder_force_base.x(), n.constraints);
+                o.time, n.tip.x(), n.tip.y(), n.tip.z(), toString(n.state), n.axial_force, n.constraints);
     std::printf("target 'lesion' moved %.3e m; tip-target distance %.4f m\n", o.targets[0].displacement.norm(),
                 o.targets[0].tip_distances[0]);
 

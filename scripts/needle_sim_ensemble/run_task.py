@@ -18,7 +18,9 @@ Statuses: `ok`, `numerical_failure` (exit 3: summary.json says so, with a messag
   error_bound                    the goal-oriented bound on target_u (run option --target-error)
   tip_distance_<needle>          the needle's tip to the target at the end [m]
   tip_distance_min_<needle>      ... its smallest over the run [m]
-  force_peak_<needle>            the largest force on the needle's holder, |base_f| [N]
+  force_peak_<needle>            the largest force of the needle on its holder, |holder_f| [N]
+
+The names (needles, targets) come from summary.json's "names", in scene order.
 """
 import csv
 import ctypes
@@ -64,27 +66,16 @@ def _column_max(path, columns, combine):
     return best
 
 
-def first_target(summary, header):
-    """The scene's first target: summary.json sorts its keys, the time series keeps scene order."""
-    names = set((summary.get("targets") or {}).keys())
-    for c in header:
-        if c.endswith("_u") and c[:-2] in names:
-            return c[:-2]
-    return None
-
-
 def outputs(summary, timeseries, target):
     """The row's numbers from a finished run's summary.json (dict) and timeseries.csv (path);
     target None: the scene's first."""
     out = {}
-    with open(timeseries, newline="") as f:
-        header = next(csv.reader(f))
-    target = target or first_target(summary, header)
-    needles = [c[: -len("_base_fx")] for c in header if c.endswith("_base_fx")]  # scene order
+    names = summary["names"]  # scene order (summary.json's objects sort their keys)
+    target = target or (names["targets"][0] if names["targets"] else None)
+    needles = names["needles"]
     for n in needles:
-        cols = [f"{n}_base_f{a}" for a in "xyz"]
-        if all(c in header for c in cols):
-            out[f"force_peak_{n}"] = _column_max(timeseries, cols, lambda v: (v[0] ** 2 + v[1] ** 2 + v[2] ** 2) ** 0.5)
+        out[f"force_peak_{n}"] = _column_max(timeseries, [f"{n}_holder_f{a}" for a in "xyz"],
+                                             lambda v: (v[0] ** 2 + v[1] ** 2 + v[2] ** 2) ** 0.5)
     t = (summary.get("targets") or {}).get(target) if target else None
     if target and t is None:
         raise KeyError(f"the run has no target '{target}' (it has {', '.join(summary.get('targets') or {}) or 'none'})")

@@ -157,7 +157,6 @@ std::vector<needle_sim::TargetState> targetStates(const StepFrame& f, const std:
     m.needles = l.needles;
     m.tip_distances = t.tip_distances;
     m.needle_tip_distance = t.tip_distances.empty() ? nan : t.tip_distances[0];
-    m.electrode_tip_distance = l.electrode >= 0 ? t.tip_distances[l.electrode] : nan;
     m.displacement_error = toVector(t.has_error ? t.error : Vec3::Constant(nan));
     m.displacement_error_bound = t.has_error ? t.error_bound : nan;
     m.error_step = t.has_error ? t.error_step : -1;
@@ -171,7 +170,9 @@ geometry_msgs::WrenchStamped wrenchMessage(const StepFrame& f, int i, bool in_ba
   geometry_msgs::WrenchStamped w;
   w.header.stamp = f.stamp;
   w.header.frame_id = in_base ? f.names->needles[i] + "_base" : tissue_frame;
-  w.wrench.force = toVector(in_base ? n.holder_force_base : n.holder_force);
+  // In the base frame, x is the axial force every report gives (observables.hpp: negative when
+  // the tissue resists the insertion).
+  w.wrench.force = toVector(in_base ? Vec3(n.axial_force, n.holder_force_base.y(), n.holder_force_base.z()) : n.holder_force);
   w.wrench.torque = toVector(in_base ? n.holder_moment_base : n.holder_moment);
   return w;
 }

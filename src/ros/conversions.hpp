@@ -52,7 +52,8 @@ bool toWaypoints(const trajectory_msgs::MultiDOFJointTrajectory& m, const std::s
 needle_sim::SimStatus statusMessage(const StepFrame& f, const std::string& frame);
 // One message per target.
 std::vector<needle_sim::TargetState> targetStates(const StepFrame& f, const std::string& frame);
-// Needle i's wrench on its holder, stamped in <needle>_base (in_base) or the tissue frame.
+// Needle i's wrench on its holder, stamped in <needle>_base (in_base: force.x is the axial
+// force, negative when the tissue resists the insertion, observables.hpp) or the tissue frame.
 geometry_msgs::WrenchStamped wrenchMessage(const StepFrame& f, int i, bool in_base, const std::string& tissue_frame);
 
 }  // namespace needle_sim

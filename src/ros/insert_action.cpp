@@ -187,7 +187,7 @@ void InsertAction::update(const Observables& o) {
   fb.distance = (n.tip - target).norm();
   fb.inserted = (n.base - a.base0).dot(a.axis);
   fb.force = toVector(n.holder_force_base);
-  fb.axial_force = n.holder_force_base.x();
+  fb.axial_force = n.axial_force;  // observables.hpp: negative when the tissue resists the insertion
   fb.state = toString(n.state);
   fb.max_tip_speed = a.max_tip_speed;
   auto h = a.gh;

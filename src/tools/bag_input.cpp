@@ -72,7 +72,9 @@ BagSession readBagSession(const std::string& path, const std::string& pose_topic
         const double t = w->header.stamp.isZero() ? received : (w->header.stamp - origin).toSec();
         if (!s.force.t.empty() && !(t > s.force.t.back())) continue;  // repeated or reordered stamps: keep the first
         s.force.t.push_back(t);
-        s.force.force.push_back(-w->wrench.force.x);  // the wrench is the needle's force on the holder
+        // The sensor's reading as it is: the needle's force on the holder along the needle,
+        // the simulation's axial force (observables.hpp).
+        s.force.force.push_back(w->wrench.force.x);
       }
     }
   } catch (const rosbag::BagException& e) {

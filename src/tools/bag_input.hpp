@@ -13,7 +13,7 @@ namespace needle_sim {
 
 struct BagSession {
   std::vector<RecordedCommand> commands;
-  ForceRecord force;   // axial holder force [N, + pushes in] = -wrench.force.x; empty without a wrench topic
+  ForceRecord force;   // axial force on the holder [N, < 0 when the tissue resists] = wrench.force.x; empty without a wrench topic
   double end = 0;      // last message [s]
   double origin = 0;   // the bag's start [s since the epoch]: the times above are from here
 };

@@ -125,19 +125,18 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   using clock = std::chrono::steady_clock;
   const auto t_start = clock::now();
   auto t_report = t_start;
-  std::vector<double> sim_t, sim_force;  // the bag's needle's axial holder force, for the measured one
+  std::vector<double> sim_t, sim_force;  // the bag's needle's axial force on its holder, for the measured one
   for (long k = 0; k < n; ++k) {
     const auto t0 = clock::now();
     try {
       if (replay) replay->beforeStep(*sim);
       const StepStats& s = sim->step();
-      if (replay) {
-        const NeedleBody& nb = sim->needle(bag_needle);
-        sim_t.push_back(sim->time());
-        sim_force.push_back(nb.baseForce().dot(nb.trajectory().pose(sim->time()).direction));
-      }
       const double ms = std::chrono::duration<double, std::milli>(clock::now() - t0).count();
       rec->recordStep(s, ms);
+      if (replay) {  // the step's observables, as its timeseries.csv row
+        sim_t.push_back(rec->observables().time);
+        sim_force.push_back(rec->observables().needles[bag_needle].axial_force);
+      }
       if (bag_out) bag_out->record(*sim, ms);
     } catch (const NumericalError& e) {
       const double wall = std::chrono::duration<double>(clock::now() - t_start).count();
@@ -199,9 +198,10 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   }
   for (size_t i = 0; i < o.needles.size(); ++i) {
     const NeedleObservation& n = o.needles[i];
-    std::printf("  needle %-6s tip = (% .6e, % .6e, % .6e) m, force on the holder (base frame) = (% .3e, % .3e, % .3e) N, %s\n",
-                names.needles[i].c_str(), n.tip[0], n.tip[1], n.tip[2], n.holder_force_base[0], n.holder_force_base[1],
-                n.holder_force_base[2], toString(n.state));
+    std::printf("  needle %-6s tip = (% .6e, % .6e, % .6e) m, axial force on the holder % .4e N (base frame: "
+                "% .3e, % .3e, % .3e), %s\n",
+                names.needles[i].c_str(), n.tip[0], n.tip[1], n.tip[2], n.axial_force, n.holder_force_base[0],
+                n.holder_force_base[1], n.holder_force_base[2], toString(n.state));
   }
   std::printf("results: %s\n         %s\n", rec->summaryPath().c_str(), rec->timeseriesPath().c_str());
   if (options.vtu_every > 0)
@@ -396,7 +396,7 @@ int main(int argc, char** argv) {
   auto* calibrate = app.add_subcommand("calibrate", "fit scene keys so that the simulated holder force matches a recorded one");
   calibrate->add_option("scene", cal.scene, "scene file (YAML); its needle motion is the recorded robot motion")->required();
   calibrate->add_option("--data", cal.data,
-                        "recorded force: CSV with columns t [s], axial_force [N, + pushes in], or a bag (with the topics)")
+                        "recorded force: CSV with columns t [s], axial_force [N, the needle's force on its holder along it: < 0 when the tissue resists], or a bag (with the topics)")
       ->required();
   calibrate->add_option("--pose-topic", cal.pose_topic, "bag: the commanded base poses (geometry_msgs/PoseStamped): the motion");
   calibrate->add_option("--wrench-topic", cal.wrench_topic, "bag: the measured wrench (geometry_msgs/WrenchStamped, <needle>_base frame)");

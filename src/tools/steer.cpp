@@ -7,6 +7,7 @@
 
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/observables.hpp"
 #include "needle_sim/steer/steering_planner.hpp"
 
 using namespace needle_sim;
@@ -68,7 +69,7 @@ int steerCommand(const SteerOptions& o) {
     const double now = sim.time(), end = plan.plan.waypoints.back().first;
     sim.needle(req.needle).trajectory().replaceFrom(now, sim.dt(), plan.plan.waypoints);
     while (sim.time() - now < end - 1e-9 * sim.dt()) sim.step();
-    const Vec3 tip = sim.needle(req.needle).tipPosition();
+    const Vec3 tip = observe(sim).needles[req.needle].tip;
     const double dist = (tip - req.target).norm(), off = (tip - plan.tip).norm();
     std::printf("live: tip (%.6f, %.6f, %.6f) m, %.3f mm from the target, %.3f mm from the prediction\n", tip.x(),
                 tip.y(), tip.z(), 1e3 * dist, 1e3 * off);

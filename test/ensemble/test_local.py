@@ -60,7 +60,7 @@ class Study(unittest.TestCase):
         self.assertEqual(float(r["tip_distance_needle"]), t["tip_distance"]["needle"])
         series = rows(os.path.join(d, "timeseries.csv"))
         self.assertEqual(float(r["target_u_max"]), max(float(x["T_u"]) for x in series))
-        force = max(np.linalg.norm([float(x[f"needle_base_f{a}"]) for a in "xyz"]) for x in series)
+        force = max(np.linalg.norm([float(x[f"needle_holder_f{a}"]) for a in "xyz"]) for x in series)
         self.assertEqual(float(r["force_peak_needle"]), force)
         # --keep-runs kept that run's folder: the same summary
         with open(os.path.join(self.out, "runs", f"{int(r['run']):05d}", "summary.json")) as f:

@@ -4,7 +4,8 @@ record.launch scripted:=true) replayed under /use_sim_time reproduces the scene-
 of phantom_insertion_8x4x4.yaml (same motion: 2.3 cm at 1 cm/s, 0.2 s hold, withdrawal).
 Expected values during the hold (sim time 2.35-2.45 s), from
 `needle_sim run config/scenes/phantom_insertion_8x4x4.yaml`: probe p1 u_x = 9.147e-8 m,
-20 constraint points, holder force 0.01950 N along the insertion (the wrench reads -0.01950);
+20 constraint points, axial force on the holder -0.01950 N (needle_axial_force, the wrench's x:
+negative, the tissue resists);
 the tip reaches 19.996 mm and is withdrawn out of the tissue; no command is rejected.
 Measured in the replay (the same in repeated runs: commands take effect at stamp + 50 ms):
 p1 u_x 9.196e-8 ... 9.389e-8 (within 2.7 %: the bag's 100 Hz, slightly jittered commands are

@@ -5,7 +5,8 @@
 //    needle_sim/NeedleTrajectory: the same tip positions, step by step, to 1e-9 m.
 //  - dynamic_reconfigure: a lower ~max_speed is enforced at once; a set that fails the
 //    checks is refused whole.
-//  - the ~insert action: a goal reaches its target with feedback; a preempted goal holds the
+//  - the ~insert action: a goal reaches its target with feedback (axial_force = force.x,
+//    negative while the needle cuts: the wrench's sign); a preempted goal holds the
 //    needle; an unknown target and a speed above the limit are rejected.
 #include <actionlib/client/simple_action_client.h>
 #include <dynamic_reconfigure/client.h>
@@ -249,7 +250,8 @@ TEST(Interfaces, TfTreeTrajectoriesReconfigureAndTheInsertAction) {
   }, 20.0)) << "the estimate's step did not advance from " << first_error_step;
   //    4a. To 3 mm before the target at 10 mm/s: 12 mm of travel in 1.2 s.
   std::atomic<int> feedback{0};
-  std::atomic<double> last_distance{NAN};
+  std::atomic<double> last_distance{NAN}, last_axial{NAN};
+  std::atomic<int> axial_not_force_x{0};
   needle_sim::InsertNeedleGoal goal;
   goal.target = "goal";
   goal.speed = 0.01;
@@ -257,11 +259,17 @@ TEST(Interfaces, TfTreeTrajectoriesReconfigureAndTheInsertAction) {
   ac.sendGoal(goal, {}, {}, [&](const needle_sim::InsertNeedleFeedbackConstPtr& f) {
     ++feedback;
     last_distance = f->distance;
+    last_axial = f->axial_force;
+    axial_not_force_x += f->axial_force != f->force.x;
   });
   ASSERT_TRUE(ac.waitForResult(ros::Duration(20.0)));
   EXPECT_EQ(ac.getState(), actionlib::SimpleClientGoalState::SUCCEEDED) << ac.getState().getText();
   const auto r = *ac.getResult();
   EXPECT_GT(feedback.load(), 8);  // 10 Hz of simulated time over 1.2 s
+  // The axial force (observables.hpp): the x of the force on the holder in <needle>_base, the
+  // wrench's sign, negative while the needle cuts its way in.
+  EXPECT_EQ(axial_not_force_x.load(), 0);
+  EXPECT_LT(last_axial.load(), -0.005);
   EXPECT_NEAR(r.inserted, 0.012, 1e-6);
   EXPECT_GT(r.final_distance, 0.002);  // the target is pushed ahead of the tip ...
   EXPECT_LT(r.final_distance, 0.006);  // ... by a few millimetres at most

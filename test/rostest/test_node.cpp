@@ -276,9 +276,10 @@ TEST(NeedleSimNode, CommandedInsertionRejectsBadCommandsAndResets) {
     EXPECT_EQ(state.name, "goal");
     EXPECT_EQ(state.planned.x, 0.01);
     EXPECT_NEAR(state.position.x, 0.01, 1e-4);
-    ASSERT_EQ(state.tip_distances.size(), 1u);
+    ASSERT_EQ(state.tip_distances.size(), 1u);  // one per needle, in scene order
+    EXPECT_EQ(state.needles, std::vector<std::string>{"needle"});
+    EXPECT_EQ(state.tip_distances[0], state.needle_tip_distance);
     EXPECT_NEAR(state.needle_tip_distance, 0.01 - L.tipX(), 2e-4);
-    EXPECT_TRUE(std::isnan(state.electrode_tip_distance));
     EXPECT_NEAR(primary.point.x, state.position.x, 1e-4);
     EXPECT_EQ(primary.header.frame_id, "tissue");
   }

@@ -5,13 +5,18 @@
 // identified rather than silently fitted.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <random>
+#include <sstream>
 
 #include "needle_sim/calibration/force_calibration.hpp"
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/io/run_recorder.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/observables.hpp"
 
 using namespace needle_sim;
 namespace fs = std::filesystem;
@@ -106,7 +111,7 @@ TEST(Calibration, RecoversKnownValuesFromASyntheticRecord) {
 #ifdef NEEDLE_SIM_SANITIZED
   // Under the sanitizers: the whole path (record, optimiser, penalty, threaded Jacobian) on a
   // short record with a few evaluations; the accuracy is checked in the regular build.
-  const fs::path shortRecord = writeFile("short.csv", "t,axial_force\n0.1,0\n0.2,0\n0.3,0.001\n0.4,0.03\n");
+  const fs::path shortRecord = writeFile("short.csv", "t,axial_force\n0.1,0\n0.2,0\n0.3,-0.001\n0.4,-0.03\n");
   CalibrationSettings q;
   q.scene = kPhantom;
   q.sets = {"time.dt=0.002", "time.duration=0.4"};
@@ -157,4 +162,54 @@ TEST(Calibration, ReportsParametersTheDataCannotSeparate) {
               r.std_errors[0], r.values[1], r.std_errors[1], r.values[0] * r.values[1], r.rms);
   EXPECT_FALSE(r.identifiable[0] && r.identifiable[1]);
   EXPECT_NEAR(r.values[0] * r.values[1], 0.05 * 400, 0.1 * 0.05 * 400);  // the product is determined
+}
+
+// The force calibrate fits is the axial force every report gives (observables.hpp): the
+// needle's force on its holder along the needle, negative while the tissue resists. The
+// phantom, step by step: simulateHolderForce, observe() and the recorder's needle_axial_force
+// column give the same figure, about -20 mN while the needle cuts (the tip 12-17 mm deep).
+TEST(Calibration, SimulatedForceIsTheObservablesAxialForce) {
+  const SimulatedForce f = simulateHolderForce(kPhantom, kFixed, 0, 2.0);
+  ASSERT_FALSE(f.failed) << f.failure;
+  const fs::path dir = fs::temp_directory_path() / ("needle_sim_cal_" + std::to_string(::getpid()) + "_axial");
+  Simulation sim(loadScene(kPhantom, kFixed));
+  std::vector<double> observed;
+  {
+    RunRecorder rec(sim, dir.string());
+    for (size_t k = 0; k < f.t.size(); ++k) {
+      rec.recordStep(sim.step(), 0.0);
+      observed.push_back(observe(sim).needles[0].axial_force);
+      ASSERT_EQ(sim.time(), f.t[k]);
+    }
+    rec.finish(0.0);
+  }
+  std::ifstream csv(dir / "timeseries.csv");
+  std::string line;
+  std::getline(csv, line);
+  std::vector<std::string> header;
+  std::stringstream hs(line);
+  for (std::string c; std::getline(hs, c, ',');) header.push_back(c);
+  const size_t col = std::find(header.begin(), header.end(), "needle_axial_force") - header.begin();
+  ASSERT_LT(col, header.size()) << "no needle_axial_force column: " << line;
+  double cutting = 0, calibrate_off = 0, column_off = 0;
+  int n = 0, positive = 0;
+  for (size_t k = 0; k < f.t.size(); ++k) {
+    ASSERT_TRUE(std::getline(csv, line));
+    std::stringstream row(line);
+    std::string cell;
+    for (size_t c = 0; c <= col; ++c) std::getline(row, cell, ',');
+    calibrate_off = std::max(calibrate_off, std::abs(f.force[k] - observed[k]));
+    // (the CSV holds 10 significant digits)
+    column_off = std::max(column_off, std::abs(std::stod(cell) - observed[k]) - 1e-9 * std::abs(observed[k]));
+    if (f.t[k] >= 1.5 && f.t[k] <= 2.0) {
+      positive += f.force[k] >= 0;
+      cutting += f.force[k], ++n;
+    }
+  }
+  EXPECT_EQ(calibrate_off, 0.0) << "calibrate's simulated force is not observe()'s axial force";
+  EXPECT_LE(column_off, 1e-15) << "the needle_axial_force column is not observe()'s axial force";
+  ASSERT_GT(n, 200);
+  EXPECT_EQ(positive, 0) << "the tissue resists the insertion: the axial force is negative while cutting";
+  EXPECT_NEAR(cutting / n, -0.02, 0.005);
+  fs::remove_all(dir);
 }

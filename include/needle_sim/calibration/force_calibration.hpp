@@ -47,8 +47,9 @@ struct CalibrationSettings {
   std::vector<RecordedCommand> commands;
 };
 
-// The simulated holder force along the needle's axis (positive: the holder pushes it in)
-// and the base's advance along its initial axis, at every step.
+// The simulated axial force on the holder (observe()'s NeedleObservation::axial_force:
+// negative when the tissue resists the insertion) and the base's advance along its initial
+// axis, at every step.
 struct SimulatedForce {
   std::vector<double> t, force, advance;
   bool failed = false;

@@ -2,7 +2,9 @@
 // A recorded insertion's axial holder force against time (doc/calibration.md): what a
 // force/torque sensor on the needle holder measured, to compare the simulation with and to
 // calibrate its parameters from. CSV with a header naming the columns `t` [s] and
-// `axial_force` [N, positive when the holder pushes the needle in]; other columns are ignored.
+// `axial_force` [N]: the needle's force on its holder along the needle, the sensor's reading
+// as the simulation reports it (observables.hpp): negative when the tissue resists the
+// insertion. Other columns are ignored.
 #include <string>
 #include <vector>
 

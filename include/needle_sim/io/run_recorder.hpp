@@ -1,8 +1,12 @@
 #pragma once
-// Records a run of a Simulation and writes its results:
+// Records a run of a Simulation and writes its results (doc/cli.md), every figure read from
+// the step's Observables (observables.hpp: one sign for the holder force):
 //   DIR/timeseries.csv  one row per step (step, t, dofs, step_ms, split timings, solver
-//                       counters, NAME_ux, NAME_uy, NAME_uz per probe)
-//   DIR/summary.json    scene, sizes, step-time statistics, solver statistics, final probes
+//                       counters, NAME_ux, NAME_uy, NAME_uz per probe, per needle its tip,
+//                       the force and moment on its holder and NAME_axial_force, per target
+//                       its position and the distance to every needle's tip)
+//   DIR/summary.json    scene, names in scene order, sizes, step-time statistics, solver
+//                       statistics, the final needles, probes and targets
 // The CSV is written to timeseries.partial.csv while running and renamed only on success;
 // With --centerline, DIR/centerline.csv holds every needle node per step (step, t, needle,
 // node, s = rest arc length from the base, x, y, z). A failed run leaves summary.json with "status": "numerical_failure" and the step, so
@@ -46,6 +50,8 @@ class RunRecorder {
 
   // Step times, their deadline (dt) and its misses.
   const RunStatistics& stepTimes() const { return step_ms_; }
+  // The observables of the last recorded step (what its timeseries.csv row holds).
+  const Observables& observables() const { return obs_; }
   std::string summaryPath() const { return dir_ + "/summary.json"; }
   std::string timeseriesPath() const { return dir_ + "/timeseries.csv"; }
 

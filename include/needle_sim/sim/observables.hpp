@@ -7,10 +7,14 @@
 //     (command/pose_convention.hpp: x along the needle, towards the tip);
 //   - holder force and moment: what the needle exerts on its holder (what a force/torque
 //     sensor between holder and needle reads), the moment about the base node, in the tissue
-//     frame and in the needle's base frame; an insertion the tissue resists gives a negative
-//     axial (base-frame x) force;
+//     frame and in the needle's base frame;
+//   - the axial force: the one figure every report gives for "the holder force" (timeseries
+//     column <needle>_axial_force, summary.json, calibrate, run --bag, the node's wrench x and
+//     ~insert's feedback): the base-frame x component of the holder force, i.e. along the
+//     needle towards its tip. NEGATIVE when the tissue resists an insertion (about -20 mN
+//     while the phantom's needle cuts), positive when it holds a needle back that is pulled out;
 //   - target displacement since step 0 (after the brain shift, if any) and shift from the
-//     planning position; tip distances per needle.
+//     planning position; the distance from every needle's tip (scene order).
 // observe() reuses the vectors' storage: no allocation per step once the sizes are known.
 #include <limits>
 #include <memory>
@@ -34,6 +38,7 @@ struct NeedleObservation {
   Eigen::Quaterniond base_frame = Eigen::Quaterniond::Identity();
   Vec3 holder_force = Vec3::Zero(), holder_moment = Vec3::Zero();            // tissue frame
   Vec3 holder_force_base = Vec3::Zero(), holder_moment_base = Vec3::Zero();  // base frame
+  double axial_force = 0;  // holder_force_base.x(): negative when the tissue resists an insertion [N]
   InsertionState state = InsertionState::Approaching;  // Approaching without an interaction
   int constraints = 0;                                 // active constraint points
   double puncture_force = std::numeric_limits<double>::quiet_NaN();
@@ -79,13 +84,13 @@ struct Observables {
   StepStats stats;  // of the last step
 };
 
-// Names and fixed values, which change only when the scene or its targets do.
+// Names (scene order: the order of every per-needle, per-probe and per-target vector above)
+// and fixed values, which change only when the scene or its targets do.
 struct ObservableNames {
   std::string scene;
   std::vector<std::string> needles, probes, targets;
   std::vector<Vec3> probe_rest, target_rest, target_start;
   std::vector<double> needle_radius;
-  int electrode = -1;  // the needle named "electrode" (DBS), or -1
 };
 
 void observe(const Simulation& sim, Observables& out);

@@ -15,6 +15,7 @@
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/scene/scene_overrides.hpp"
+#include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 namespace needle_sim {
@@ -150,13 +151,14 @@ SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<s
     if (replaying) replay = std::make_unique<CommandReplay>(sim, CommandLimits{}, *commands);
     const BasePose p0 = sim.needle(needle).trajectory().pose(0);
     const long steps = std::min(sc.numSteps(), static_cast<long>(std::ceil(until / sc.dt - 1e-9)) + 1);
+    Observables o;
     for (long k = 0; k < steps; ++k) {
       if (replay) replay->beforeStep(sim);
       sim.step();
-      const NeedleBody& n = sim.needle(needle);
-      const BasePose b = n.trajectory().pose(sim.time());
-      r.t.push_back(sim.time());
-      r.force.push_back(n.baseForce().dot(b.direction));
+      observe(sim, o);
+      const BasePose b = sim.needle(needle).trajectory().pose(sim.time());
+      r.t.push_back(o.time);
+      r.force.push_back(o.needles[needle].axial_force);
       r.advance.push_back((b.position - p0.position).dot(p0.direction));
       if (!std::isfinite(r.force.back())) throw NumericalError(k, "non-finite holder force");
     }

@@ -10,7 +10,6 @@
 #include <stdexcept>
 
 #include "needle_sim/io/vtu_writer.hpp"
-#include "needle_sim/needle/tip_path.hpp"
 
 namespace needle_sim {
 
@@ -74,10 +73,12 @@ void RunRecorder::declareColumns() {
     const std::string n = sim_.needle(i).name() + "_";
     vec(n + "tip_", [i](const Row& r) { return r.obs.needles[i].tip; });
     vec(n + "dir_", [i](const Row& r) { return r.obs.needles[i].tip_direction; });
-    // base_f, base_m: what the holder applies to the needle (the opposite of the sensor's
-    // reading, observables.hpp), tissue frame.
-    vec(n + "base_f", [i](const Row& r) { return Vec3(-r.obs.needles[i].holder_force); });
-    vec(n + "base_m", [i](const Row& r) { return Vec3(-r.obs.needles[i].holder_moment); });
+    // holder_f, holder_m: the needle's force and moment on its holder (a force/torque
+    // sensor's reading), tissue frame; axial_force: its component along the needle, negative
+    // when the tissue resists the insertion (observables.hpp).
+    vec(n + "holder_f", [i](const Row& r) { return r.obs.needles[i].holder_force; });
+    vec(n + "holder_m", [i](const Row& r) { return r.obs.needles[i].holder_moment; });
+    col(n + "axial_force", [i](std::ostream& o, const Row& r) { o << r.obs.needles[i].axial_force; });
     if (interaction) {
       col(n + "state", [i](std::ostream& o, const Row& r) { o << toString(r.obs.needles[i].state); });
       col(n + "constraints", [i](std::ostream& o, const Row& r) { o << r.obs.needles[i].constraints; });
@@ -255,30 +256,36 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                    {"elements", body.mesh().numElements()},
                    {"inverted_elements", body.model().invertedElements()}};
   }
+  // The final state's figures from the observables (the same numbers as the last row of
+  // timeseries.csv); names in scene order (JSON objects sort their keys).
+  const Observables o = observe(sim_);
+  const ObservableNames names = observableNames(sim_);
+  j["names"] = {{"needles", names.needles}, {"probes", names.probes}, {"targets", names.targets}};
   json needles = json::object();
   auto arr = [](const Vec3& v) { return json::array({v[0], v[1], v[2]}); };
   for (int i = 0; i < sim_.numNeedles(); ++i) {
     const auto& nd = sim_.needle(i);
+    const NeedleObservation& n = o.needles[i];
     needles[nd.name()] = {{"elements", nd.beam().numElements()},
                           {"dofs", nd.numDofs()},
-                          {"tip", arr(nd.tipPosition())},
-                          {"direction", arr(nd.tipDirection())},
-                          {"base_force", arr(nd.baseForce())},
-                          {"base_moment", arr(nd.baseMoment())},
+                          {"tip", arr(n.tip)},
+                          {"direction", arr(n.tip_direction)},
+                          {"holder_force", arr(n.holder_force)},
+                          {"holder_moment", arr(n.holder_moment)},
+                          {"axial_force", n.axial_force},
                           {"elastic_energy", nd.elasticEnergy()}};
     json line = json::array();
     for (const auto& p : nd.state().p) line.push_back(arr(p));
     needles[nd.name()]["centerline"] = line;
     if (const auto* in = sim_.interaction()) {
-      needles[nd.name()]["state"] = toString(in->state(i));
-      needles[nd.name()]["constraints"] = in->activePoints(i);
-      const double pf = in->punctureForce(i);
-      needles[nd.name()]["puncture_force"] = std::isnan(pf) ? json(nullptr) : json(pf);
+      needles[nd.name()]["state"] = toString(n.state);
+      needles[nd.name()]["constraints"] = n.constraints;
+      needles[nd.name()]["puncture_force"] = std::isnan(n.puncture_force) ? json(nullptr) : json(n.puncture_force);
       // The cut path in rest (material) space, from the puncture to the tip's last anchor.
       json path = json::array();
       for (const auto& p : in->cutPath(i)) path.push_back(arr(p));
       needles[nd.name()]["cut_path"] = path;
-      needles[nd.name()]["cut_path_length"] = pathLength(in->cutPath(i));
+      needles[nd.name()]["cut_path_length"] = n.path_length;
     }
   }
   if (sim_.numNeedles()) j["needles"] = needles;
@@ -341,20 +348,20 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
   j["energy"] = {{"kinetic", sim_.kineticEnergy()}, {"elastic", sim_.elasticEnergy()}};
   json probes = json::object();
   for (int i = 0; i < sim_.numProbes(); ++i) {
-    const Vec3 u = sim_.probeDisplacement(i);
-    const Vec3 p = scene.probes[i].point;
+    const Vec3& u = o.probe_displacement[i];
+    const Vec3& p = names.probe_rest[i];
     probes[sim_.probeName(i)] = {{"point", {p[0], p[1], p[2]}}, {"displacement", {u[0], u[1], u[2]}}, {"norm", u.norm()}};
   }
   j["probes"] = probes;
   if (sim_.numTargets()) {
     json targets = json::object();
     for (int i = 0; i < sim_.numTargets(); ++i) {
-      const Vec3 p = sim_.targetPosition(i), r = sim_.targetRest(i), u = p - r;
-      json t = {{"planned", arr(r)},
-                {"position", arr(p)},
-                {"displacement", arr(u)},
-                {"displacement_norm", u.norm()},
-                {"motion_since_start", (p - sim_.targetStart(i)).norm()}};
+      const TargetObservation& ot = o.targets[i];
+      json t = {{"planned", arr(names.target_rest[i])},
+                {"position", arr(ot.position)},
+                {"displacement", arr(ot.shift)},
+                {"displacement_norm", ot.shift.norm()},
+                {"motion_since_start", ot.displacement.norm()}};
       if (target_error_) {
         const auto* errs = sim_.lastTargetErrors();
         if (errs && i < static_cast<int>(errs->size()) && (*errs)[i].valid) {
@@ -374,8 +381,8 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
         }
       }
       for (int k = 0; k < sim_.numNeedles(); ++k) {
-        const std::string& nn = sim_.needle(k).name();
-        t["tip_distance"][nn] = (sim_.needle(k).tipPosition() - p).norm();
+        const std::string& nn = names.needles[k];
+        t["tip_distance"][nn] = ot.tip_distances[k];
         auto it = min_target_distance_.find(sim_.targetName(i) + "/" + nn);
         if (it != min_target_distance_.end()) t["tip_distance_min"][nn] = it->second;
       }

@@ -35,6 +35,7 @@ void observe(const Simulation& sim, Observables& o) {
     const Eigen::Quaterniond to_base = n.base_frame.conjugate();
     n.holder_force_base = to_base * n.holder_force;
     n.holder_moment_base = to_base * n.holder_moment;
+    n.axial_force = n.holder_force_base.x();
     n.state = in ? in->state(i) : InsertionState::Approaching;
     n.constraints = in ? in->activePoints(i) : 0;
     n.puncture_force = in ? in->punctureForce(i) : std::numeric_limits<double>::quiet_NaN();
@@ -86,7 +87,6 @@ ObservableNames observableNames(const Simulation& sim) {
   for (int i = 0; i < sim.numNeedles(); ++i) {
     l.needles.push_back(sim.needle(i).name());
     l.needle_radius.push_back(sim.scene().needles[i].radius);
-    if (l.needles.back() == "electrode") l.electrode = i;
   }
   for (int i = 0; i < sim.numProbes(); ++i) {
     l.probes.push_back(sim.probeName(i));
