@@ -70,7 +70,7 @@ bool SimulatorRos::toTissue(const std::string& frame, const ros::Time& stamp, co
   if (frame == params_->tissue_frame) return true;
   if (frame.empty()) {
     if (params_->allow_empty_frame) return true;
-    guard_->record(GuardRule::EmptyFrame);
+    guard().record(GuardRule::EmptyFrame);
     warnRule(GuardRule::EmptyFrame, source, "empty frame_id (set it to '" + params_->tissue_frame +
                                                "', or allow it with ~allow_empty_frame)");
     return false;
@@ -80,8 +80,8 @@ bool SimulatorRos::toTissue(const std::string& frame, const ros::Time& stamp, co
     // than ~command_timeout at the command's stamp.
     const auto t = tf_buffer_->lookupTransform(params_->tissue_frame, frame, ros::Time(0));
     const double age = stamp.isZero() || t.header.stamp.isZero() ? 0.0 : (stamp - t.header.stamp).toSec();
-    if (age > guard_->limits().command_timeout) {
-      guard_->record(GuardRule::Frame);
+    if (age > guard().limits().command_timeout) {
+      guard().record(GuardRule::Frame);
       warnRule(GuardRule::Frame, source,
                "the transform " + params_->tissue_frame + " <- " + frame + " is " + std::to_string(age) +
                    " s older than the command");
@@ -90,7 +90,7 @@ bool SimulatorRos::toTissue(const std::string& frame, const ros::Time& stamp, co
     out = fromTransform(t.transform);
     return true;
   } catch (const tf2::TransformException& e) {
-    guard_->record(GuardRule::Frame);
+    guard().record(GuardRule::Frame);
     warnRule(GuardRule::Frame, source, "no transform " + params_->tissue_frame + " <- '" + frame + "': " + e.what());
     return false;
   }
@@ -101,12 +101,8 @@ void SimulatorRos::admit(int needle, const PoseCommand& c, const std::string& so
   const double now = simSeconds(ros::Time::now());
   PoseCommand cmd = c;
   if (params_->as_fast_as_possible) cmd.stamp = std::numeric_limits<double>::quiet_NaN();  // stamps mean nothing then
-  const Admission a = guard_->admit(needle, cmd, now);
-  if (!a.accepted) {
-    warnRule(a.rule, c.source.empty() ? source : source + " from " + c.source, a.reason);
-    return;
-  }
-  commands_.emplace_back(needle, a);
+  const Admission a = pipeline_->submit(needle, cmd, now);
+  if (!a.accepted) warnRule(a.rule, c.source.empty() ? source : source + " from " + c.source, a.reason);
 }
 
 void SimulatorRos::onPose(int needle, const geometry_msgs::PoseStamped::ConstPtr& m, const std::string& caller) {
@@ -138,7 +134,7 @@ void SimulatorRos::onMultiDof(int needle, const trajectory_msgs::MultiDOFJointTr
   std::vector<PlanWaypoint> w;
   std::string why;
   if (!toWaypoints(*m, scene_.needles[needle].name, to_tissue, w, why)) {
-    guard_->record(GuardRule::Plan);
+    guard().record(GuardRule::Plan);
     warnRule(GuardRule::Plan, source, why);
     return;
   }
@@ -155,7 +151,7 @@ void SimulatorRos::lookupTfCommands() {
       // Looked up every step: an outage (or the robot not publishing yet) is one rejection,
       // not one per step.
       if (!tf_missing_[i]) {
-        guard_->record(GuardRule::Frame);
+        guard().record(GuardRule::Frame);
         warnRule(GuardRule::Frame, source, std::string("no base pose from tf: ") + e.what() + "; the base holds");
       }
       tf_missing_[i] = 1;

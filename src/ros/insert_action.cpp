@@ -19,7 +19,7 @@ InsertAction::InsertAction(SimulatorRos& node, ros::NodeHandle& pnh, double defa
   server_.start();
 }
 
-void InsertAction::release(const Active& a) { node_.guard_->release(a.needle, kHolder); }
+void InsertAction::release(const Active& a) { node_.guard().release(a.needle, kHolder); }
 
 void InsertAction::shutdown() {
   std::lock_guard<std::mutex> lk(mutex_);
@@ -60,7 +60,7 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
   const int needle = node_.needleIndex(g.needle);
   if (needle < 0) return reject("needle: no needle named '" + g.needle + "'");
   const double speed = g.speed == 0 ? default_speed_ : g.speed;
-  const double max_speed = node_.guard_->limits().max_speed;
+  const double max_speed = node_.guard().limits().max_speed;
   if (!(speed > 0) || !(speed <= max_speed))
     return reject("speed: " + std::to_string(speed) + " m/s is outside (0, ~max_speed = " + std::to_string(max_speed) + "]");
   if (!std::isfinite(g.depth) || g.depth < 0) return reject("depth: must be finite and >= 0");
@@ -101,15 +101,14 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
     plan.source = "~insert goal";
     // Checked now (rejected at once) and again by the stepping thread when it takes it.
     PlanPoses poses;
-    const bool inserted = sim.interaction() && sim.interaction()->activePoints(needle) > 0;
-    const std::string why = node_.guard_->checkPlan(needle, plan.waypoints, from, sim.dt(), inserted, poses);
+    const std::string why = node_.pipeline_->checkPlan(sim, needle, plan.waypoints, poses);
     if (!why.empty()) return reject("the motion breaks a limit: " + why);
     a.duration = w.time;
     std::lock_guard<std::mutex> lk(mutex_);
     // One source at a time: the goal holds the needle until it ends (a goal under way on
     // this needle is the same holder; its preemption below keeps the hold).
     std::string owner_why;
-    if (!node_.guard_->hold(needle, kHolder, now, owner_why)) {
+    if (!node_.guard().hold(needle, kHolder, now, owner_why)) {
       node_.warnRule(GuardRule::Owner, "~insert goal", owner_why);
       return reject("owner: " + owner_why);
     }

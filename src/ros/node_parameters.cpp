@@ -94,12 +94,12 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   pnh.param("workspace_margin", l.workspace_margin, l.workspace_margin);
   pnh.param("command_latency", l.command_latency, l.command_latency);
   pnh.param("owner_timeout", l.owner_timeout, l.owner_timeout);
-  l.validate();
+  l.validate("~");
   LimitCeilings& c = p.ceilings;
   for (const CeiledLimit& k : kCeiledLimits)
     pnh.param(std::string(k.name) + "_ceiling", c.*k.ceiling, c.*k.ceiling);  // start-up only
-  c.validate();
-  c.check(l);
+  c.validate("~");
+  c.check(l, "~");
   pnh.param("max_tip_speed", p.max_tip_speed, p.max_tip_speed);
   if (!(p.max_tip_speed >= 0) || !std::isfinite(p.max_tip_speed))
     throw InputError("", "~max_tip_speed", "must be >= 0 and finite (0: 4 times ~max_speed)");

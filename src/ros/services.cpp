@@ -98,11 +98,7 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
     target = req.target.empty() ? (sim_->numTargets() > 0 ? std::min(primary_target_, sim_->numTargets() - 1) : -1)
                                 : sim_->findTarget(req.target);
     if (!req.target.empty() && target < 0) return refuse("target: no target named '" + req.target + "'");
-    const BaseTrajectory& traj = sim_->needle(needle).trajectory();
-    const bool inserted = sim_->interaction() && sim_->interaction()->activePoints(needle) > 0;
-    const std::string why =
-        guard_->checkPlan(needle, toWaypoints(req.trajectory, to_tissue), traj.pose(sim_->time()), sim_->dt(),
-                          inserted, plan.waypoints);
+    const std::string why = pipeline_->checkPlan(*sim_, needle, toWaypoints(req.trajectory, to_tissue), plan.waypoints);
     if (!why.empty()) return refuse("trajectory: " + why);
     snapshot = std::make_unique<Simulation>(*sim_);
   }

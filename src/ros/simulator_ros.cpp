@@ -103,7 +103,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
     predict_spinner_->start();
   }
   action_ = std::make_unique<InsertAction>(*this, pnh_, P.insert_speed);
-  reconfigure_ = std::make_unique<LimitsReconfigure>(pnh_, *guard_, [this](double rate) { display_->setRate(rate); });
+  reconfigure_ = std::make_unique<LimitsReconfigure>(pnh_, guard(), [this](double rate) { display_->setRate(rate); });
   if (P.target_error_period > 0) error_thread_ = std::thread(&SimulatorRos::errorLoop, this);
   // On the wall clock without tf commands the stepping thread keeps its own time; under
   // /use_sim_time (a bag's clock) or with tf lookups each tick, the timer drives it.
@@ -155,26 +155,15 @@ void SimulatorRos::load() {
   }
   last_error_time_ = -1e300;
   names_ = std::make_shared<const ObservableNames>(observableNames(*sim_));
-  CommandLimits limits = guard_ ? guard_->limits() : params_->limits;
-  if (sim_->hasTissue()) {
-    limits.workspace_min = sim_->tissue().mesh().boundsMin();
-    limits.workspace_max = sim_->tissue().mesh().boundsMax();
+  if (!pipeline_) {
+    pipeline_ = std::make_unique<CommandPipeline>(*sim_, params_->limits, params_->ceilings, "~");
+    // The scene's own motion is not a command: new limits do not slow it.
+    pipeline_->enforceOnMotion(params_->command_source != "scene");
   } else {
-    limits.workspace_min = limits.workspace_max = scene_.needles.empty() ? Vec3::Zero() : scene_.needles[0].base_position;
-  }
-  if (!guard_) {
-    std::vector<CommandGuard::NeedleInfo> info;
-    for (const auto& n : scene_.needles) info.push_back({{n.base_position, n.base_direction, n.base_roll}, n.length});
-    guard_ = std::make_unique<CommandGuard>(limits, std::move(info), params_->ceilings);
-  } else {
-    guard_->setLimits(limits);
-    guard_->restart();
+    pipeline_->restart(*sim_);
   }
   {
     std::lock_guard<std::mutex> lk(queue_mutex_);
-    commands_.clear();
-    plans_.clear();
-    holds_.clear();
     origin_ = ros::Time(0);  // restarted by the next tick
   }
   failure_.clear();
@@ -292,58 +281,24 @@ void SimulatorRos::pacedWorker() {
 }
 
 void SimulatorRos::applyCommands() {
-  std::vector<std::pair<int, Admission>> cmds;
-  std::vector<Plan> plans;
-  std::vector<int> holds;
-  {
-    std::lock_guard<std::mutex> lk(queue_mutex_);
-    cmds.swap(commands_);
-    plans.swap(plans_);
-    holds.swap(holds_);
-  }
-  const double now = sim_->time(), dt = sim_->dt();
-  auto inserted = [&](int n) { return sim_->interaction() && sim_->interaction()->activePoints(n) > 0; };
-  for (int n : holds) sim_->needle(n).trajectory().holdFrom(now);
-  // New limits (dynamic_reconfigure) apply to what is under way too, not only to new commands.
-  if (guard_->limitsVersion() != limits_version_ && params_->command_source != "scene") {
-    limits_version_ = guard_->limitsVersion();
-    for (int n = 0; n < sim_->numNeedles(); ++n)
-      if (guard_->enforce(n, sim_->needle(n).trajectory(), now, inserted(n)))
-        ROS_INFO("needle_sim: %s: the motion under way slowed down to the new limits", names_->needles[n].c_str());
-  }
-  for (size_t i = 0; i < cmds.size(); ++i) {
-    const auto& [n, a] = cmds[i];
-    // A later command of the same needle for the same instant supersedes this one.
-    if (i + 1 < cmds.size() && cmds[i + 1].first == n && cmds[i + 1].second.at == a.at) continue;
-    if (action_) action_->superseded(n, "a pose command");
-    const Following f = guard_->follow(n, sim_->needle(n).trajectory(), a, now, dt, inserted(n));
-    if (f.limited)
-      warnRule(f.rule, names_->needles[n] + " command",
-               "reached " + std::to_string(f.reached_at - std::max(a.at, now + dt)) + " s later than asked");
-    commanded_ = true;
-  }
-  for (auto& p : plans) {
-    BaseTrajectory& traj = sim_->needle(p.needle).trajectory();
-    PlanPoses poses;
-    std::string why;
-    // One source at a time: a plan from another than the needle's owner is refused whole.
-    if (!p.owner.empty() && !guard_->mayCommand(p.needle, p.owner, now, why)) {
-      warnRule(GuardRule::Owner, p.source, why);
-      if (p.done) p.done("owner: " + why);
-      continue;
+  for (const CommandPipeline::Event& e : pipeline_->beforeStep(*sim_)) {
+    const std::string& needle = names_->needles[e.needle];
+    switch (e.kind) {
+      case CommandPipeline::Event::Kind::Taken:
+        // A command or a plan of another sender supersedes an ~insert goal on the needle.
+        if (action_ && !e.has_done) action_->superseded(e.needle, e.source);
+        commanded_ = true;
+        break;
+      case CommandPipeline::Event::Kind::Limited:
+        warnRule(e.rule, needle + " command", e.why);
+        break;
+      case CommandPipeline::Event::Kind::Refused:
+        warnRule(e.rule, e.source, e.why);
+        break;
+      case CommandPipeline::Event::Kind::Enforced:
+        ROS_INFO("needle_sim: %s: the motion under way slowed down to the new limits", needle.c_str());
+        break;
     }
-    why = guard_->checkPlan(p.needle, p.waypoints, traj.pose(now), dt, inserted(p.needle), poses);
-    if (!why.empty()) {
-      warnRule(GuardRule::Plan, p.source, why);
-    } else {
-      if (!p.owner.empty()) guard_->own(p.needle, p.owner, now, now + dt + poses.back().first);
-      if (action_ && !p.done) action_->superseded(p.needle, p.source);
-      traj.holdFrom(now);
-      traj.replaceFrom(now, dt, poses);
-      guard_->planTaken(p.needle, poses.back().second);
-      commanded_ = true;
-    }
-    if (p.done) p.done(why);
   }
 }
 
@@ -399,15 +354,9 @@ void SimulatorRos::updateTargetErrors() {
   }
 }
 
-void SimulatorRos::queuePlan(Plan plan) {
-  std::lock_guard<std::mutex> lk(queue_mutex_);
-  plans_.push_back(std::move(plan));
-}
+void SimulatorRos::queuePlan(Plan plan) { pipeline_->submitPlan(std::move(plan)); }
 
-void SimulatorRos::holdNeedle(int needle) {
-  std::lock_guard<std::mutex> lk(queue_mutex_);
-  holds_.push_back(needle);
-}
+void SimulatorRos::holdNeedle(int needle) { pipeline_->hold(needle); }
 
 void SimulatorRos::stepOnce() {
   double ms = 0;
@@ -437,7 +386,7 @@ void SimulatorRos::stepOnce() {
 }
 
 double SimulatorRos::maxTipSpeed() const {
-  return params_->max_tip_speed > 0 ? params_->max_tip_speed : 4 * guard_->limits().max_speed;
+  return params_->max_tip_speed > 0 ? params_->max_tip_speed : 4 * guard().limits().max_speed;
 }
 
 void SimulatorRos::watchTipSpeed() {

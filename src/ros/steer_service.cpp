@@ -37,7 +37,7 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
     return std::string();
   };
   // The plan must pass the command guard: by default it turns at the guard's angular limit.
-  const CommandLimits lim = guard_->limits();
+  const CommandLimits lim = guard().limits();
   for (const std::string& why : {number("speed", req.speed, std::min(q.speed, lim.max_speed), q.speed),
                                  number("roll_rate", req.roll_rate, std::min(q.roll_rate, lim.max_angular_speed),
                                         q.roll_rate),
@@ -116,7 +116,7 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
     bool free;
     {
       std::lock_guard<std::mutex> lk(sim_mutex_);
-      free = guard_->mayCommand(needle, caller, sim_->time(), why);
+      free = guard().mayCommand(needle, caller, sim_->time(), why);
     }
     if (!free) {
       warnRule(GuardRule::Owner, "~steer from " + caller, why);

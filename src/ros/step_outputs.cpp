@@ -38,9 +38,9 @@ void SimulatorRos::publishStep(double ms) {
     f.deadlines = schedule_.counts(clock);
     if (!params_->as_fast_as_possible && !origin_.isZero()) f.lag = std::max(0.0, clock - sim_->time());
   }
-  f.guard = guard_->counts();
-  f.rejected = guard_->rejected();
-  f.clamped = guard_->limited();
+  f.guard = guard().counts();
+  f.rejected = guard().rejected();
+  f.clamped = guard().limited();
   f.unconverged = unconverged_steps_;
   f.constraint_residual = constraint_residual_;
   f.display_range = display_->range();
@@ -87,8 +87,8 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   // The recent step times, copied under the lock and sorted after it (a sort of 10,000 under
   // it would delay a 1 kHz step).
   std::vector<double> recent = step_ms_.samples();
-  const auto counts = guard_->counts();
-  const uint64_t rej = guard_->rejected(), lim = guard_->limited();
+  const auto counts = guard().counts();
+  const uint64_t rej = guard().rejected(), lim = guard().limited();
   RealtimeSchedule::Counts d;
   {
     std::lock_guard<std::mutex> q(queue_mutex_);

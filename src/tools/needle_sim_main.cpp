@@ -370,7 +370,9 @@ int main(int argc, char** argv) {
   steer->add_option("--target", steer_opts.target, "the target: x y z [m], tissue frame")->expected(3)->required();
   steer->add_option("--needle", steer_opts.needle, "needle to steer (default: the first)");
   steer->add_option("--speed", steer_opts.speed, "insertion speed [m/s]")->capture_default_str();
-  steer->add_option("--roll-rate", steer_opts.roll_rate, "roll rate of the base for the turns [rad/s]")->capture_default_str();
+  steer->add_option("--roll-rate", steer_opts.roll_rate, "roll rate of the base for the turns [rad/s] (0: --max-angular-speed, at most pi)")->capture_default_str();
+  steer->add_option("--max-speed", steer_opts.max_speed, "the live run's guard: base translation limit [m/s] (the node's ~max_speed)")->capture_default_str();
+  steer->add_option("--max-angular-speed", steer_opts.max_angular_speed, "the live run's guard: base rotation limit [rad/s] (the node's ~max_angular_speed)")->capture_default_str();
   steer->add_option("--dt", steer_opts.dt, "time step of the predictions [s] (0: the scene's)")->capture_default_str();
   steer->add_option("--tolerance", steer_opts.tolerance, "done when the predicted tip is this close [m]")->capture_default_str();
   steer->add_option("--max-predictions", steer_opts.max_predictions, "predictions at most")->capture_default_str();

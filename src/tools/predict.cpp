@@ -10,6 +10,8 @@
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/io/run_recorder.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/command/pose_convention.hpp"
+#include "needle_sim/sim/command_pipeline.hpp"
 #include "needle_sim/sim/prediction.hpp"
 
 using namespace needle_sim;
@@ -65,13 +67,8 @@ int predictCommand(const PredictOptions& o) {
   if (!o.target.empty()) {
     sim.setTarget("target", Vec3(o.target[0], o.target[1], o.target[2]));
   }
-  int needle = 0;
-  if (!o.needle.empty()) {
-    needle = -1;
-    for (int n = 0; n < sim.numNeedles(); ++n)
-      if (sim.needle(n).name() == o.needle) needle = n;
-    if (needle < 0) throw InputError(o.scene, "--needle", "no needle named '" + o.needle + "'");
-  }
+  const int needle = o.needle.empty() ? 0 : sim.findNeedle(o.needle);
+  if (needle < 0) throw InputError(o.scene, "--needle", "no needle named '" + o.needle + "'");
   if (sim.numNeedles() == 0) throw InputError(o.scene, "needle", "the scene has no needle to plan for");
   const long live_steps = std::lround(o.at / scene.dt);
   for (long k = 0; k < live_steps; ++k) sim.step();
@@ -85,6 +82,15 @@ int predictCommand(const PredictOptions& o) {
   plan.needle = needle;
   const double over = o.over > 0 ? std::min(o.over, o.duration) : o.duration;
   plan.waypoints = {{over, end}};
+  {
+    // Checked as the node's ~predict checks a plan (the command pipeline with the node's
+    // default limits): a plan the node would refuse is refused here too.
+    CommandPipeline pipeline(sim, CommandLimits{});
+    PlanPoses checked;
+    const std::string why =
+        pipeline.checkPlan(sim, needle, {{over, end.position, orientationOf(end, traj.rest()), 0, 0}}, checked);
+    if (!why.empty()) throw InputError(o.scene, "--advance", "the command guard refuses the plan: " + why);
+  }
   plan.duration = o.duration;
   plan.dt = o.dt;
   plan.sample_period = o.sample_period;

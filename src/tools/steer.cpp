@@ -6,7 +6,9 @@
 #include <nlohmann/json.hpp>
 
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/command/pose_convention.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/command_pipeline.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/steer/steering_planner.hpp"
 
@@ -18,15 +20,18 @@ int steerCommand(const SteerOptions& o) {
   Simulation sim(scene);
   SteeringRequest req;
   if (!o.needle.empty()) {
-    req.needle = -1;
-    for (int n = 0; n < sim.numNeedles(); ++n)
-      if (sim.needle(n).name() == o.needle) req.needle = n;
+    req.needle = sim.findNeedle(o.needle);
     if (req.needle < 0) throw InputError(o.scene, "--needle", "no needle named '" + o.needle + "'");
   }
   if (sim.numNeedles() == 0) throw InputError(o.scene, "needle", "the scene has no needle to steer");
+  // The guard the live run goes through: the node's defaults, or the limits given.
+  CommandLimits limits;
+  limits.max_speed = o.max_speed;
+  limits.max_angular_speed = o.max_angular_speed;
+  CommandPipeline pipeline(sim, limits);  // (refuses limits out of range, naming them)
   req.target = Vec3(o.target[0], o.target[1], o.target[2]);
   req.speed = o.speed;
-  req.roll_rate = o.roll_rate;
+  req.roll_rate = o.roll_rate > 0 ? o.roll_rate : std::min(limits.max_angular_speed, M_PI);
   req.dt = o.dt;
   req.tolerance = o.tolerance;
   req.max_predictions = o.max_predictions;
@@ -64,23 +69,35 @@ int steerCommand(const SteerOptions& o) {
                                {"distance", it.distance}, {"seconds", it.ms / 1e3},
                                {"steps_run", it.steps_run}, {"resumed_at", it.resumed_at}});
   if (o.live) {
-    // The plan on the live simulation at the scene's own time step (the predictions may
-    // have used a coarser one).
+    // The plan as a command, through the pipeline as the node's ~steer executes it, then the
+    // live simulation at the scene's own time step (the predictions may have used a coarser one).
+    const BasePose& rest = sim.needle(req.needle).trajectory().rest();
     const double now = sim.time(), end = plan.plan.waypoints.back().first;
-    sim.needle(req.needle).trajectory().replaceFrom(now, sim.dt(), plan.plan.waypoints);
-    while (sim.time() - now < end - 1e-9 * sim.dt()) sim.step();
-    const Vec3 tip = observe(sim).needles[req.needle].tip;
-    const double dist = (tip - req.target).norm(), off = (tip - plan.tip).norm();
-    std::printf("live: tip (%.6f, %.6f, %.6f) m, %.3f mm from the target, %.3f mm from the prediction\n", tip.x(),
-                tip.y(), tip.z(), 1e3 * dist, 1e3 * off);
-    j["live_tip"] = {tip.x(), tip.y(), tip.z()};
-    j["live_distance"] = dist;
-    j["live_vs_predicted"] = off;
+    CommandPipeline::Plan command{req.needle, {}, "steer --live", nullptr, ""};
+    for (const auto& [t, pose] : plan.plan.waypoints)
+      command.waypoints.push_back({t, pose.position, orientationOf(pose, rest), 0, 0});
+    std::string refused;
+    command.done = [&](const std::string& why) { refused = why; };
+    pipeline.submitPlan(std::move(command));
+    pipeline.beforeStep(sim);
+    if (!refused.empty()) {
+      std::printf("live: not run: the command guard refuses the plan: %s\n", refused.c_str());
+      j["live_refused"] = refused;
+    } else {
+      while (sim.time() - now < end - 1e-9 * sim.dt()) sim.step();
+      const Vec3 tip = observe(sim).needles[req.needle].tip;
+      const double dist = (tip - req.target).norm(), off = (tip - plan.tip).norm();
+      std::printf("live: tip (%.6f, %.6f, %.6f) m, %.3f mm from the target, %.3f mm from the prediction\n", tip.x(),
+                  tip.y(), tip.z(), 1e3 * dist, 1e3 * off);
+      j["live_tip"] = {tip.x(), tip.y(), tip.z()};
+      j["live_distance"] = dist;
+      j["live_vs_predicted"] = off;
+    }
   }
   if (!o.json_out.empty()) {
     std::ofstream f(o.json_out);
     if (!f) throw std::runtime_error("cannot write " + o.json_out);
     f << j.dump(2) << '\n';
   }
-  return plan.reached ? 0 : 1;
+  return plan.reached && (!o.live || !j.contains("live_refused")) ? 0 : 1;
 }

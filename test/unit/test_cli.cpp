@@ -290,6 +290,17 @@ TEST(Cli, SteerPlansABevelAndRefusesASymmetricTip) {
   EXPECT_FALSE(j["flip_depth"].is_null());
   EXPECT_LT(j["live_vs_predicted"].get<double>(), 1e-9);
   EXPECT_GE(j["waypoints"].size(), 4u);
+  // The live run goes through the command pipeline: a roll faster than the guard's limit is
+  // planned, but not run (the node would refuse it too).
+  r = runTool("steer " + scene + " --set needle.bevel.angle=0.5235987755982988 --set interaction.shaft_spacing=0.0005"
+              " --target 0.018 0.0099 0.01 --roll-rate 3 --max-angular-speed 1 --max-predictions 1 --json '" +
+              (out / "refused.json").string() + "'");
+  EXPECT_EQ(r.status, 1) << r.err;
+  std::ifstream in2(out / "refused.json");
+  const json k = json::parse(in2);
+  ASSERT_TRUE(k.contains("live_refused"));
+  EXPECT_NE(k["live_refused"].get<std::string>().find("angular_speed"), std::string::npos) << k["live_refused"];
+  EXPECT_FALSE(k.contains("live_tip"));
 }
 
 // Error outputs on request: eta columns every step and the final mesh as a VTU file that

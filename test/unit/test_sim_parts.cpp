@@ -10,10 +10,12 @@
 #include <string>
 
 #include "needle_sim/brain/brain_shift_prestep.hpp"
+#include "needle_sim/command/pose_convention.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/adaptation_passes.hpp"
 #include "needle_sim/sim/adaptive_tissue.hpp"
+#include "needle_sim/sim/command_pipeline.hpp"
 #include "needle_sim/sim/coupled_step.hpp"
 #include "needle_sim/sim/simulation.hpp"
 #include "needle_sim/sim/target_error_estimator.hpp"
@@ -310,4 +312,69 @@ TEST(BrainShiftPreStep, ScalesTheLoadToTheTargetShiftAndPassesAsTheMeshAsks) {
     EXPECT_EQ(host.adapts, adaptive ? 2 : 0);
     EXPECT_EQ(host.checks, r.passes);
   }
+}
+
+// The command pipeline (sim/command_pipeline.hpp): a command faster than the limit is slowed
+// (never jumped to), a plan breaking a limit is refused whole and its sender told, another
+// source than the needle's owner is refused, a hold stops the needle; limits lowered while a
+// motion is under way slow it.
+TEST(CommandPipeline, GuardsEveryWayANeedleIsMoved) {
+  Simulation sim(loadScene(kScenes + "phantom_insertion_8x4x4.yaml", {"needle.motion=[]"}));
+  CommandLimits limits;  // max_speed 0.05 m/s
+  CommandPipeline pipeline(sim, limits);
+  const BaseTrajectory& traj = sim.needle(0).trajectory();
+  const BasePose rest = traj.rest();
+  // 10 mm away, stamped now (asked to be reached at once): followed at the limit, 0.2 s.
+  PoseCommand c;
+  c.position = rest.position + 0.01 * rest.direction;
+  c.orientation = orientationOf(rest, rest);
+  c.stamp = 0.0;
+  c.source = "robot_a";
+  ASSERT_TRUE(pipeline.submit(0, c, 0.0).accepted);
+  auto events = pipeline.beforeStep(sim);
+  ASSERT_EQ(events.size(), 2u);
+  EXPECT_EQ(events[0].kind, CommandPipeline::Event::Kind::Taken);
+  EXPECT_EQ(events[1].kind, CommandPipeline::Event::Kind::Limited);
+  EXPECT_EQ(events[1].rule, GuardRule::LinearSpeed);
+  EXPECT_NEAR((traj.pose(0.1).position - rest.position).norm(), 0.005, 1e-3);
+  EXPECT_GT((traj.pose(0.15).position - c.position).norm(), 1e-3);
+  EXPECT_NEAR((traj.pose(0.25).position - c.position).norm(), 0.0, 1e-9);
+  // Another source while robot_a owns the needle: refused.
+  PoseCommand other = c;
+  other.source = "robot_b";
+  other.stamp = 0.01;
+  const Admission b = pipeline.submit(0, other, 0.01);
+  EXPECT_FALSE(b.accepted);
+  EXPECT_EQ(b.rule, GuardRule::Owner);
+  // A plan at 0.5 m/s from robot_a: refused whole, its sender told why.
+  std::string told = "<not called>";
+  CommandPipeline::Plan fast{0, {{0.02, rest.position + 0.01 * rest.direction, orientationOf(rest, rest), 0, 0}},
+                             "test plan", [&](const std::string& why) { told = why; }, "robot_a"};
+  pipeline.submitPlan(fast);
+  events = pipeline.beforeStep(sim);
+  ASSERT_EQ(events.size(), 1u);
+  EXPECT_EQ(events[0].kind, CommandPipeline::Event::Kind::Refused);
+  EXPECT_EQ(events[0].rule, GuardRule::Plan);
+  EXPECT_NE(told.find("linear_speed"), std::string::npos) << told;
+  // A hold: the needle stops where it is commanded to be now.
+  sim.step();
+  pipeline.hold(0);
+  pipeline.beforeStep(sim);
+  const Vec3 held = traj.pose(sim.time()).position;
+  EXPECT_NEAR((traj.pose(sim.time() + 1.0).position - held).norm(), 0.0, 1e-12);
+  EXPECT_TRUE(CommandPipeline::inserted(sim, 0) == false);  // still outside the phantom
+  // Limits lowered under a motion: it slows down.
+  PoseCommand far = c;
+  far.position = rest.position + 0.004 * rest.direction;
+  far.stamp = sim.time();  // 4 mm on at the limit: 0.08 s under way
+  ASSERT_TRUE(pipeline.submit(0, far, sim.time()).accepted);
+  pipeline.beforeStep(sim);
+  const double end_before = traj.lastTime();
+  CommandLimits slow = limits;
+  slow.max_speed = 0.005;
+  pipeline.guard().setLimits(slow);
+  events = pipeline.beforeStep(sim);
+  ASSERT_FALSE(events.empty());
+  EXPECT_EQ(events[0].kind, CommandPipeline::Event::Kind::Enforced);
+  EXPECT_GT(traj.lastTime(), end_before + 0.2);
 }

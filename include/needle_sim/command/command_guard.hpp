@@ -46,7 +46,7 @@ struct CommandLimits {
   double owner_timeout = 0.5;            // [s] a needle's owner that is silent this long gives it up
   Vec3 workspace_min = Vec3::Zero(), workspace_max = Vec3::Zero();  // the tissue's box
   // Throws InputError (key: prefix + parameter name) for a limit out of its range.
-  void validate(const std::string& prefix = "~") const;
+  void validate(const std::string& prefix = "") const;
 };
 
 // Hard ceilings of the limits that widen what the guard lets through (start-up parameters
@@ -60,9 +60,9 @@ struct LimitCeilings {
   double command_timeout = 5.0;            // [s]
   double workspace_margin = 1.0;           // [m]
   // Each ceiling positive and finite (InputError: prefix + "<limit>_ceiling").
-  void validate(const std::string& prefix = "~") const;
+  void validate(const std::string& prefix = "") const;
   // Throws InputError naming the limit and its ceiling for a limit above it.
-  void check(const CommandLimits& l, const std::string& prefix = "~") const;
+  void check(const CommandLimits& l, const std::string& prefix = "") const;
 };
 
 // The limits that have a ceiling: the parameter's name (its ceiling: name + "_ceiling"),
@@ -162,7 +162,10 @@ class CommandGuard {
     double length = 0;     // for the rigid tip position in plan checks
   };
   // Throws InputError for limits out of range or above a ceiling.
-  CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> needles, const LimitCeilings& ceilings = {});
+  // prefix: how its consumer names the limits in messages ("~" for the node's parameters: the
+  // core's own messages name them bare, "max_speed").
+  CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> needles, const LimitCeilings& ceilings = {},
+               std::string prefix = "");
 
   // New limits (dynamic_reconfigure): validated and held to the ceilings (InputError: the
   // limits stay as they were), effective for the next command.
@@ -235,6 +238,9 @@ class CommandGuard {
   double needed(int n, const BaseTrajectory& traj, const BasePose& from, const BasePose& to, bool inserted,
                 const CommandLimits& l, GuardRule& rule) const;
 
+  // The limits' names in a message as the consumer writes them (`~` in the text: the prefix).
+  std::string named(const std::string& text) const;
+  std::string prefix_;
   mutable std::mutex mutex_;  // limits_, last_stamp_, last_roll_, taken_, owners_
   CommandLimits limits_;
   std::vector<NeedleInfo> needles_;

@@ -38,6 +38,7 @@
 #include <trajectory_msgs/MultiDOFJointTrajectory.h>
 
 #include "needle_sim/command/command_guard.hpp"
+#include "needle_sim/sim/command_pipeline.hpp"
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/realtime_schedule.hpp"
@@ -61,16 +62,9 @@ class SimulatorRos {
   SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh);
   ~SimulatorRos();
 
-  // For the action and the services (same thread rules as the callbacks).
-  struct Plan {
-    int needle = 0;
-    std::vector<PlanWaypoint> waypoints;
-    std::string source;                     // for warnings
-    std::function<void(const std::string&)> done;  // called by the worker: "" taken, else why refused
-    // Who sends it (rule owner: the caller id of a topic or a service, or the holder's name);
-    // "": not arbitrated. Taken, it owns the needle until the plan's end at least.
-    std::string owner;
-  };
+  // For the action and the services (same thread rules as the callbacks): a plan goes to the
+  // core's command pipeline, which checks and takes it at the next step boundary.
+  using Plan = CommandPipeline::Plan;
   void queuePlan(Plan plan);
   // Stops a needle where it is now (the action's preemption).
   void holdNeedle(int needle);
@@ -128,7 +122,9 @@ class SimulatorRos {
   ros::NodeHandle nh_, pnh_;
   std::unique_ptr<NodeParameters> params_;
   Scene scene_;
-  std::unique_ptr<CommandGuard> guard_;
+  // Every command reaches the simulation through it (sim/command_pipeline.hpp).
+  std::unique_ptr<CommandPipeline> pipeline_;
+  CommandGuard& guard() const { return pipeline_->guard(); }
   std::unique_ptr<OutputQueue> out_;
   std::unique_ptr<DisplayOutputs> display_;
   std::unique_ptr<InsertAction> action_;
@@ -140,7 +136,6 @@ class SimulatorRos {
   Observables obs_;
   std::string failure_;
   bool commanded_ = false;  // a command was taken since the start (state waiting before)
-  long limits_version_ = 0;  // of the limits the trajectories were last checked against
   int primary_target_ = 0;
   // Step times: percentiles over the last kStepWindow steps, maximum and steps over dt since
   // the start or ~reset.
@@ -168,13 +163,10 @@ class SimulatorRos {
   unsigned long tip_warnings_suppressed_ = 0;
   double predict_max_dt_ = 0;  // ~predict_max_dt, resolved against the scene's dt
 
-  std::mutex queue_mutex_;  // schedule_, origin_, commands_, plans_, holds_, stop_
+  std::mutex queue_mutex_;  // schedule_, origin_, stop_
   RealtimeSchedule schedule_;
   ros::Time origin_;  // ROS time of step 0 (zero: not started)
   std::condition_variable wake_;
-  std::vector<std::pair<int, Admission>> commands_;
-  std::vector<Plan> plans_;
-  std::vector<int> holds_;
   bool stop_ = false;
 
   std::unique_ptr<tf2_ros::Buffer> tf_buffer_;

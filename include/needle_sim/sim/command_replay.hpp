@@ -1,13 +1,14 @@
 #pragma once
 // A recorded command stream applied to a simulation headless, the way the node applies it
-// (doc/cli.md, "run --bag"): every pose command goes through the same CommandGuard with the
-// node's default limits, admitted at the time it was received and followed at the next step
-// boundary, so a recorded session replays with the same rules (stamps, limits, workspace) as
-// on the robot, as fast as the machine allows. No ROS here: the tool reads the bag.
+// (doc/cli.md, "run --bag"): every pose command goes through the command pipeline
+// (sim/command_pipeline.hpp) with the node's default limits, submitted at the time it was
+// received and followed at the next step boundary, so a recorded session replays with the
+// same rules (stamps, limits, workspace, one source per needle) as on the robot, as fast as
+// the machine allows. No ROS here: the tool reads the bag.
 #include <memory>
 #include <vector>
 
-#include "needle_sim/command/command_guard.hpp"
+#include "needle_sim/sim/command_pipeline.hpp"
 
 namespace needle_sim {
 
@@ -27,16 +28,17 @@ struct RecordedCommand {
 
 class CommandReplay {
  public:
-  // commands in the order they were received. The guard's workspace is the tissue's box.
+  // commands in the order they were received.
   CommandReplay(const Simulation& sim, const CommandLimits& limits, std::vector<RecordedCommand> commands);
-  // Before each sim.step(): admits the commands received up to the step's start, follows them.
+  // Before each sim.step(): submits the commands received up to the step's start and applies
+  // them.
   void beforeStep(Simulation& sim);
-  const CommandGuard& guard() const { return *guard_; }
+  const CommandGuard& guard() const { return pipeline_.guard(); }
   long accepted() const { return accepted_; }
   long pending() const { return static_cast<long>(commands_.size() - next_); }
 
  private:
-  std::unique_ptr<CommandGuard> guard_;
+  CommandPipeline pipeline_;
   std::vector<RecordedCommand> commands_;
   size_t next_ = 0;
   long accepted_ = 0;

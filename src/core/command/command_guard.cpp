@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <cstdio>
 
 #include "needle_sim/command/pose_convention.hpp"
@@ -68,7 +69,7 @@ void CommandLimits::validate(const std::string& prefix) const {
     throw InputError("", prefix + "quaternion_tolerance", "must be in (0, 1)");
   positive(owner_timeout, "owner_timeout");
   if (max_angular_speed_inserted > max_angular_speed)
-    throw InputError("", prefix + "max_angular_speed_inserted", "must not exceed ~max_angular_speed");
+    throw InputError("", prefix + "max_angular_speed_inserted", "must not exceed " + prefix + "max_angular_speed");
 }
 
 void LimitCeilings::validate(const std::string& prefix) const {
@@ -110,18 +111,19 @@ SegmentMotion segmentMotion(const BaseTrajectory& traj, const BasePose& a, const
   return m;
 }
 
-CommandGuard::CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> needles, const LimitCeilings& ceilings)
-    : limits_(limits), needles_(std::move(needles)), ceilings_(ceilings) {
-  ceilings_.validate();
-  limits_.validate();
-  ceilings_.check(limits_);
+CommandGuard::CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> needles, const LimitCeilings& ceilings,
+                           std::string prefix)
+    : prefix_(std::move(prefix)), limits_(limits), needles_(std::move(needles)), ceilings_(ceilings) {
+  ceilings_.validate(prefix_);
+  limits_.validate(prefix_);
+  ceilings_.check(limits_, prefix_);
   for (auto& c : counts_) c = 0;
   restart();
 }
 
 void CommandGuard::setLimits(const CommandLimits& limits) {
-  limits.validate();
-  ceilings_.check(limits);
+  limits.validate(prefix_);
+  ceilings_.check(limits, prefix_);
   std::lock_guard<std::mutex> lk(mutex_);
   limits_ = limits;
   ++limits_version_;
@@ -161,12 +163,28 @@ uint64_t CommandGuard::limited() const {
   return s;
 }
 
+std::string CommandGuard::named(const std::string& text) const {
+  // "~<limit>" in the guard's own wording: the limit as its consumer names it. (Only the
+  // limits' names: a sender's name such as "~insert" stays as it is.)
+  static const char* const kLimitNames[] = {"max_speed", "max_angular_speed", "max_future", "command_timeout",
+                                            "quaternion_tolerance", "workspace_margin", "command_latency",
+                                            "owner_timeout"};
+  std::string s;
+  for (size_t i = 0; i < text.size(); ++i) {
+    bool limit = false;
+    if (text[i] == '~')
+      for (const char* name : kLimitNames) limit = limit || text.compare(i + 1, std::strlen(name), name) == 0;
+    s += limit ? prefix_ : std::string(1, text[i]);
+  }
+  return s;
+}
+
 Admission CommandGuard::reject(GuardRule r, const std::string& why) {
   record(r);
   Admission a;
   a.accepted = false;
   a.rule = r;
-  a.reason = why;
+  a.reason = named(why);
   return a;
 }
 
@@ -213,7 +231,7 @@ bool CommandGuard::ownerAllows(int n, const std::string& source, double now, std
   else
     std::snprintf(buf, sizeof buf, "(until it has been silent for ~owner_timeout = %g s; its last command %.4g s ago)",
                   limits_.owner_timeout, silent);
-  why = "the needle is commanded by " + o.source + " " + buf + "; commands from " + source + " are rejected";
+  why = named("the needle is commanded by " + o.source + " " + buf + "; commands from " + source + " are rejected");
   return false;
 }
 
@@ -381,7 +399,7 @@ std::string CommandGuard::checkPlan(int n, const std::vector<PlanWaypoint>& w, c
   auto refuse = [&](size_t k, const std::string& why) {
     record(GuardRule::Plan);
     out.clear();
-    return "waypoint " + std::to_string(k) + ": " + why;
+    return "waypoint " + std::to_string(k) + ": " + named(why);
   };
   if (w.empty()) {
     record(GuardRule::Plan);
