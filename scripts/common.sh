@@ -20,7 +20,7 @@ PACKAGES=(
   ros-sensor-msgs ros-nav-msgs ros-std-srvs ros-visualization-msgs ros-trajectory-msgs libtrajectory-msgs-dev
   libdiagnostic-updater-dev libtf2-ros-dev libactionlib-dev libactionlib-msgs-dev ros-actionlib-msgs
   libdynamic-reconfigure-config-init-mutex-dev
-  libnodeletlib-dev libnodeletlib-tools pluginlib-dev librosbag-storage-dev
+  libnodeletlib-dev libnodeletlib-tools pluginlib-dev librosbag-storage-dev libroslib-dev
   # what a Python client of the node imports (messages, services, the action, tf, reconfigure)
   python3-rosbag python3-rospy python3-geometry-msgs python3-nav-msgs python3-sensor-msgs python3-visualization-msgs
   python3-diagnostic-msgs python3-std-srvs python3-tf2-msgs python3-tf2-ros python3-trajectory-msgs

@@ -1,5 +1,9 @@
 #include "node_parameters.hpp"
 
+#include <ros/package.h>
+
+#include "needle_sim/scene/scene_path.hpp"
+
 #include <yaml-cpp/yaml.h>
 
 #include <cmath>
@@ -58,6 +62,8 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   NodeParameters p;
   if (!pnh.getParam("scene", p.scene_file))
     throw InputError("", "~scene", "missing private parameter: the scene YAML file");
+  // A scene by name (scene:=dbs_adaptive.yaml): the package's, as the tool finds it.
+  p.scene_file = resolveScenePath(p.scene_file, ros::package::getPath("needle_sim"));
   readOverrides(pnh, p.overrides);
   pnh.param("deterministic_factor", p.deterministic_factor, p.deterministic_factor);
   pnh.param("tissue_frame", p.tissue_frame, p.tissue_frame);

@@ -10,6 +10,7 @@
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/scene/scene_keys.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/scene/scene_path.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 using namespace needle_sim;
@@ -281,4 +282,16 @@ TEST(Scene, SceneKeysAreFoundAsTheFileAndSetWriteThem) {
   EXPECT_EQ(Range::open(-1, 0.5).text(), "in (-1, 0.5)");
   EXPECT_EQ(Range::positive().text(), "> 0");
   EXPECT_EQ(Range::closed(0, 1e6).text(), "in [0, 1e6]");
+}
+
+// Scenes by name (scene/scene_path.hpp), as the tool, the node and the launch files take them.
+TEST(Scene, ScenesByNameAreThePackages) {
+  const std::string share = kSrc;
+  EXPECT_EQ(resolveScenePath("dbs_adaptive.yaml", share), kSrc + "/config/scenes/dbs_adaptive.yaml");
+  EXPECT_EQ(resolveScenePath("dbs_adaptive", share), kSrc + "/config/scenes/dbs_adaptive.yaml");
+  EXPECT_EQ(resolveScenePath(kPhantom, share), kPhantom);                       // a path: as given
+  EXPECT_EQ(resolveScenePath("elsewhere/dbs_adaptive.yaml", share), "elsewhere/dbs_adaptive.yaml");
+  EXPECT_EQ(resolveScenePath("no_such_scene.yaml", share), "no_such_scene.yaml");  // the loader says so
+  EXPECT_EQ(resolveScenePath("dbs_adaptive.yaml", ""), "dbs_adaptive.yaml");
+  EXPECT_NO_THROW(loadScene(resolveScenePath("phantom_8x4x4", share)));
 }
