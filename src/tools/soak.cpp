@@ -13,6 +13,7 @@
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/io/run_recorder.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 using namespace needle_sim;
@@ -107,7 +108,7 @@ int soakCommand(const SoakOptions& o) {
       if (k % window == 0) heap_windows.push_back(heap);
       rss_last = rss;
       heap_last = heap;
-      const char* state = sim.interaction() ? toString(sim.interaction()->state(0)) : "-";
+      const char* state = sim.interaction() ? toString(observe(sim).needles[0].state) : "-";
       std::printf("| %ld | %.3f | %d | %.3f | %.3f | %.2f | %.2f | %.1f | %.3e | %s |\n", k, sim.time(), sim.numDofs(),
                   p.median, p.p95, p.max, heap, rss, ek + ee, state);
       std::fflush(stdout);

@@ -17,6 +17,7 @@
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/geometry/immersed_grid.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 using namespace needle_sim;
@@ -745,4 +746,32 @@ TEST(StaticNewton, AKeptFactorCarriesOverToTheNextSolve) {
   kept.keepStaticFactor(false);
   kept.addExternalForce(0.01 * unit);
   EXPECT_EQ(kept.solveStatic(contact, 1e-8, 50).factorizations, 1);
+}
+
+// The DBS scene's electrode, left in the brain while the cannula is withdrawn over it, is
+// reported inserted to the end (its tip backs off by micrometres as the tissue relaxes, its
+// base holds still: observables.hpp, kHeldStill); the cannula reports withdrawing while its
+// base moves back and out at the end.
+TEST(DbsScene, TheElectrodeLeftInTheBrainStaysInserted) {
+  Simulation sim(loadScene(kSrc + "/config/scenes/dbs_coarse.yaml"));
+  const int cannula = sim.findNeedle("cannula"), electrode = sim.findNeedle("electrode");
+  ASSERT_GE(cannula, 0);
+  ASSERT_GE(electrode, 0);
+  bool cannula_withdrawing = false, electrode_inserted = false, electrode_withdrawing = false;
+  double electrode_backoff = 0;
+  while (sim.stepIndex() < sim.scene().numSteps()) {
+    sim.step();
+    const Observables o = observe(sim);
+    cannula_withdrawing = cannula_withdrawing || o.needles[cannula].state == InsertionState::Withdrawing;
+    electrode_inserted = electrode_inserted || o.needles[electrode].state == InsertionState::Inserted;
+    if (electrode_inserted) electrode_withdrawing = electrode_withdrawing || o.needles[electrode].state != InsertionState::Inserted;
+    electrode_backoff = std::max(electrode_backoff, sim.interaction()->withdrawnSinceRelease(electrode));
+  }
+  const Observables o = observe(sim);
+  EXPECT_TRUE(electrode_inserted);
+  EXPECT_FALSE(electrode_withdrawing) << "the electrode left the state inserted";
+  EXPECT_EQ(o.needles[electrode].state, InsertionState::Inserted);
+  EXPECT_TRUE(cannula_withdrawing);
+  EXPECT_EQ(o.needles[cannula].state, InsertionState::Out);
+  EXPECT_LT(electrode_backoff, kHeldStill);  // its base held still
 }

@@ -86,6 +86,11 @@ class NeedleTissueInteraction {
   void rebind(TissueBody& tissue, TissueBinding binding);
 
   InsertionState state(int needle) const { return tracks_[needle].state; }
+  // How far the needle's base has moved back along its axis since its tip was released
+  // (Withdrawing), [m]; 0 in any other state. A needle whose tip backs off by micrometres
+  // while its base holds still (an electrode left in place as the cannula is withdrawn) has
+  // not been withdrawn: observables.hpp reports it inserted.
+  double withdrawnSinceRelease(int needle) const;
   int activePoints(int needle) const;
   const std::vector<std::unique_ptr<ContactConstraint>>& constraints() const { return constraints_; }
   // Normal force at the moment of the last puncture of a needle (NaN before any).
@@ -115,6 +120,7 @@ class NeedleTissueInteraction {
     // relaxing ahead of the tip).
     EmbeddedPoint path_end;
     bool has_end = false;
+    Vec3 release_base = Vec3::Zero();  // the base where the tip was released
     std::vector<Vec3> path;  // cutPath()
     // A bevel needle's shaft points go by the length its tip cut (rest space) since the
     // puncture: the next is due at next_shaft_at.

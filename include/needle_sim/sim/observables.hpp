@@ -51,6 +51,10 @@ struct NeedleObservation {
   bool inserted() const { return constraints > 0; }
 };
 
+// A needle whose tip was released (it backs off its channel) is reported withdrawing once its
+// base has moved back this far since [m]; until then it is still inserted.
+constexpr double kHeldStill = 1e-4;
+
 // The stretch of the cut path whose bending observe() reports [m]: long against the shaft
 // spacing (1 mm) that the path's points follow, short against a steering arc (> 20 mm radius).
 constexpr double kPathCurvatureWindow = 5e-3;

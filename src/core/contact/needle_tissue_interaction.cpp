@@ -145,6 +145,14 @@ double NeedleTissueInteraction::interfaceCompliance(int n, int e) const {
   return std::isfinite(k) ? 1 / (k * settings_.shaft_spacing) : 0.0;
 }
 
+double NeedleTissueInteraction::withdrawnSinceRelease(int needle) const {
+  const Track& tr = tracks_[needle];
+  if (tr.state != InsertionState::Withdrawing) return 0.0;
+  const NeedleBody& nd = *needles_[needle];
+  const Vec3 axis = (nd.state().p[1] - nd.state().p[0]).normalized();
+  return (tr.release_base - nd.state().p[0]).dot(axis);
+}
+
 int NeedleTissueInteraction::activePoints(int n) const {
   int k = 0;
   for (const auto& c : constraints_) k += c->needle == n;
@@ -477,6 +485,7 @@ void NeedleTissueInteraction::afterCommit() {
         tr.state = InsertionState::Withdrawing;
         tr.path_end = c.tissue;
         tr.has_end = true;
+        tr.release_base = nd.state().p[0];
         it = constraints_.erase(it);
         continue;
       } else {

@@ -37,6 +37,11 @@ void observe(const Simulation& sim, Observables& o) {
     n.holder_moment_base = to_base * n.holder_moment;
     n.axial_force = n.holder_force_base.x();
     n.state = in ? in->state(i) : InsertionState::Approaching;
+    // A released tip whose base has held still (within kHeldStill) is still in: an electrode
+    // left in the tissue while the cannula is withdrawn backs off by micrometres as the
+    // tissue relaxes; it has not been withdrawn.
+    if (n.state == InsertionState::Withdrawing && in->withdrawnSinceRelease(i) < kHeldStill)
+      n.state = InsertionState::Inserted;
     n.constraints = in ? in->activePoints(i) : 0;
     n.puncture_force = in ? in->punctureForce(i) : std::numeric_limits<double>::quiet_NaN();
     if (in) {
