@@ -214,7 +214,8 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
                     pi = percentiles(dual_it);
   const long misses = total.misses(), longest = total.longestMissRun();
   const AdaptationCounters ac = sim.adaptationCounters();
-  std::printf("needle_sim bench: %s, %ld steps%s (times in ms)\n", o.scene.c_str(), steps, o.pace ? ", paced at dt" : "");
+  std::printf("needle_sim bench: %s, %ld of the scene's %ld steps%s%s (times in ms)\n", o.scene.c_str(), steps,
+              scene.numSteps(), steps < scene.numSteps() ? " (--steps 0: all of them)" : "", o.pace ? ", paced at dt" : "");
   std::printf("| scene | wall s | DOFs median | DOFs max | step median | step p99 | step p99.9 | step max | steps > dt | "
               "longest run > dt | adapt passes | mesh changes | estimate median | mark+refine median | rebuild median | "
               "adaptivity share |\n");
