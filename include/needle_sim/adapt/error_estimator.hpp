@@ -2,7 +2,7 @@
 // What drives an adaptation pass: element error indicators of the current state (MFEM's
 // ErrorEstimator: GetLocalErrors and Reset). Two estimators implement it: the SPR energy-norm
 // estimate (EnergyErrorEstimator, below) and the goal-oriented indicators of chosen targets
-// (GoalErrorEstimator, sim/target_errors.hpp); MeshAdaptation::adapt marks with either.
+// (GoalErrorEstimator, sim/target_error_estimator.hpp); MeshAdaptation::adapt marks with either.
 // An estimator computes on first use after reset() and keeps its result until the next one.
 #include <atomic>
 #include <memory>

@@ -178,7 +178,7 @@ bool TissueBody::solveDual(const Eigen::MatrixXd& G, Eigen::MatrixXd& Z, int& it
   bool converged = false;
   // The tangent at the current rotations (the model's, as the last step left them), to a
   // relative residual of 1e-6: the dual enters an estimate whose effectivity is within a
-  // factor of 2 (doc/method.md), far above what the residual leaves.
+  // factor of 2 (doc/verification.md, "Error on target motion"), far above what the residual leaves.
   const LinearSolveStats st = solver_->solveWithFactor(mass_free_, 0.0, 1.0, Gf, Zf, 1e-6, max_iterations, converged);
   iterations = st.iterations;
   Z.resize(G.rows(), G.cols());
