@@ -218,6 +218,9 @@ TEST(DbsCoarse, BrainShiftMovesTheLeftStnByTheTargetShiftInsideTheSkull) {
   // The STN moved with the brain around it: its depth below the surface (7.6 mm, above the
   // ventral midbrain) is kept to a fraction of the shift; a shift that moved the target but
   // not the tissue around it (or the other way round) would change it by millimetres.
+  std::cout << "left STN " << r.stn_depth_rest * 1e3 << " mm below the brain's surface at rest, "
+            << r.stn_depth_after_shift * 1e3 << " mm after the shift of " << u.transpose() * 1e3 << " mm (load scale "
+            << r.shift.load_scale << ")\n";
   EXPECT_GT(r.stn_depth_rest, 0.005);
   EXPECT_NEAR(r.stn_depth_after_shift, r.stn_depth_rest, 0.15 * kTargetShift)
       << "depth at rest " << r.stn_depth_rest << " m";
@@ -283,6 +286,9 @@ TEST(DbsCoarse, HolderForceGrowsWithDepthAndEveryConstraintSolveConverges) {
     if (s.path_length >= 0.035 && s.path_length < 0.040 && s.constraints >= 2)
       share_at_40mm = -s.axial_holder_force / ((s.constraints - 1) * per_point);
   EXPECT_LT(share_at_40mm, 2.0);
+  std::cout << "axial holder force by depth band (8-16, 16-24, 24-32, 32-40 mm):";
+  for (int b = 0; b < 4; ++b) std::cout << " " << sum[b] / n[b];
+  std::cout << " N; over the grip's share: at least " << worst_share << ", " << share_at_40mm << " at 35-40 mm\n";
 }
 
 // The dynamic test of the target error bound: at every 50th step of the insertion (0 to 9 s),
