@@ -12,7 +12,7 @@ BUILD="$SANITIZED_BUILD"
 # stay in the regular build).
 UNIT=(test_fem test_solver test_verification test_scene test_beam test_interaction test_spr test_refinement
       test_adaptivity test_sim_parts test_immersed test_prediction test_cli test_command_guard test_pieces test_goal_estimate test_constraint_solve test_calibration)
-cmake --build "$BUILD" -j"$(nproc)" --target "${UNIT[@]}" fuzz_scene_replay fuzz_mesh_replay needle_sim_tool >&2
+cmake --build "$BUILD" -j"$(nproc)" --target "${UNIT[@]}" fuzz_scene_replay fuzz_mesh_replay needle_sim_tool tutorial_00_library >&2
 cd "$BUILD"
 # Leaks are reported too; halt on the first UB report. OpenBLAS's threads are kept at one.
 export ASAN_OPTIONS="detect_leaks=1:abort_on_error=0:strict_string_checks=1"
