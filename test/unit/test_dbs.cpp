@@ -193,7 +193,7 @@ Reference readReference() {
 
 // The brain shift of the shipped coarse scene: the left STN moves by target_shift (the load
 // is scaled for it), towards posterior (gravity, the patient supine), the skull is touched
-// and not crossed, and both STNs stay deep inside the brain as it deformed.
+// and not crossed, and both STNs stay inside the brain as it deformed.
 TEST(DbsCoarse, BrainShiftMovesTheLeftStnByTheTargetShiftInsideTheSkull) {
   const CoarseRun& r = coarse();
   ASSERT_TRUE(r.shift.done);
@@ -210,8 +210,7 @@ TEST(DbsCoarse, BrainShiftMovesTheLeftStnByTheTargetShiftInsideTheSkull) {
   // The skull: touched, crossed by at most 0.1 % of its gap.
   EXPECT_GT(r.shift.contacts, 0);
   EXPECT_LE(r.shift.max_penetration, 1e-3 * kSkullGap);
-  // The CIT168 left STN's centroid, in the brain at rest and after the shift; the right STN
-  // moves less (the load is asymmetric about the left STN's target, not about the midline).
+  // The CIT168 left STN's centroid, and both STNs inside the brain as it deformed.
   EXPECT_LT((r.stn_rest - Vec3(-0.0111, -0.0129, -0.0077)).norm(), 5e-4);
   EXPECT_TRUE(r.stn_inside_after_shift);
   EXPECT_TRUE(r.stn_r_inside_after_shift);
@@ -224,7 +223,7 @@ TEST(DbsCoarse, BrainShiftMovesTheLeftStnByTheTargetShiftInsideTheSkull) {
   EXPECT_GT(r.stn_depth_rest, 0.005);
   EXPECT_NEAR(r.stn_depth_after_shift, r.stn_depth_rest, 0.15 * kTargetShift)
       << "depth at rest " << r.stn_depth_rest << " m";
-  EXPECT_GT((r.stn_r_shifted - r.stn_r_rest).norm(), 1e-3);
+  EXPECT_GT((r.stn_r_shifted - r.stn_r_rest).norm(), 1e-3);  // the right STN moves with the brain too
 }
 
 // The insertion on the coarse scene: the cannula punctures and goes in; the holder's axial
@@ -272,7 +271,8 @@ TEST(DbsCoarse, HolderForceGrowsWithDepthAndEveryConstraintSolveConverges) {
     const int band = static_cast<int>(std::floor((s.path_length - 0.008) / 0.008));
     if (band >= 0 && band < 4) sum[band] += -s.axial_holder_force, n[band] += 1;
     // (a new point's friction builds up over its first steps, as the needle responds)
-    if (s.path_length < 0.040 && s.step > changed + 2) worst_share = std::min(worst_share, -s.axial_holder_force / ((s.constraints - 1) * per_point));
+    if (s.path_length < 0.040 && s.step > changed + 2)
+      worst_share = std::min(worst_share, -s.axial_holder_force / ((s.constraints - 1) * per_point));
   }
   for (int b = 0; b < 4; ++b) ASSERT_GT(n[b], 0) << "no step in band " << b;
   for (int b = 1; b < 4; ++b) EXPECT_GT(sum[b] / n[b], sum[b - 1] / n[b - 1]) << "band " << b;
