@@ -78,9 +78,11 @@ TEST(NeedleSimFailure, FailedStateErrorDiagnosticAndReset) {
       fail_message = e.what();
     }
   }
-  // Long enough for a diagnostic report (1 s) between a ~reset and the next failure.
-  ASSERT_GT(fail_step, 1200) << "the scene must run a while before it fails";
-  ASSERT_LT(fail_step, 3000);
+  // Long enough for a diagnostic report between a ~reset and the next failure: the node's
+  // reports come every 1 or 2 s (its 1 s timer calls Updater::update(), which skips a call
+  // that comes less than its period after the last report).
+  ASSERT_GT(fail_step, 2500) << "the scene must run a while before it fails";
+  ASSERT_LT(fail_step, 5000);
   std::cout << "the core fails at step " << fail_step << ": " << fail_message << "\n";
 
   Recorder R;
