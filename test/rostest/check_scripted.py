@@ -39,12 +39,15 @@ class ScriptedInsertion(unittest.TestCase):
         rospy.Subscriber("needle_sim/status", SimStatus, on_status)
         rospy.Subscriber("needle_sim/needle/tip_path", Path, on_tip_path)
         rospy.Subscriber("needle_sim/needle/path", Path, on_path)
-        deadline = rospy.Time.now() + rospy.Duration(20.0)
+        start = rospy.Time.now()
+        deadline = start + rospy.Duration(20.0)
         while not rospy.is_shutdown() and rospy.Time.now() < deadline:
             with lock:
                 if "inserted" in seen and tip["max"] > 0.015 and cut["poses"] and cut["poses"][-1][0] > 0.01:
                     break
             rospy.sleep(0.05)
+        import sys
+        print("SCRIPTED inserted and past 15 mm after %.2f s (at most 20 s)" % (rospy.Time.now() - start).to_sec(), file=sys.stderr)
         with lock:
             self.assertIn("inserted", seen)
             self.assertGreater(tip["max"], 0.015)

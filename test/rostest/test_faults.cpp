@@ -126,6 +126,8 @@ TEST(NeedleSimFaults, BurstsNonFiniteCommandsStallsAndClockJumps) {
   slow.join();
   s3.shutdown();
   EXPECT_GT(clouds.load(), 0);
+  std::cout << "while a subscriber stalled: " << b.step - a.step << " steps in " << clock_b - clock_a
+            << " ms of the clock (ratio " << static_cast<double>(b.step - a.step) / (clock_b - clock_a) << ", at least 0.6)\n";
   // The node keeps up with the clock (about 500 steps per wall second, fewer on a loaded
   // machine): a node blocked by the stalled subscriber would fall about 500 steps behind
   // per stalled second (of the 2 s measured).

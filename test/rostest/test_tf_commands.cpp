@@ -1,9 +1,11 @@
 // rostest (tf.test): ~command_source tf. The test broadcasts tissue -> needle_base advancing
 // at 1 cm/s for 1 s; the node follows it (tip advanced about 10 mm, nothing rejected). When
-// the transform stops changing, the base holds where it is.
+// the transform stops changing, the base holds where it is. The test owns the clock
+// (/use_sim_time, sim_clock.hpp): the motion is timed on simulated time, whatever the load.
 #include <gtest/gtest.h>
 #include <ros/ros.h>
 
+#include "sim_clock.hpp"
 #include "wait_for.hpp"
 #include <tf2_ros/transform_broadcaster.h>
 
@@ -36,6 +38,7 @@ TEST(TfCommands, BaseFollowsTheTransform) {
   });
   ros::AsyncSpinner spinner(2);
   spinner.start();
+  needle_sim_test::SimClock clock(nh, 0.001);  // the 8x4x4 phantom keeps the wall's pace
   ASSERT_TRUE(waitFor([] { return std::isfinite(tip()); }, 30.0));
   const double tip0 = tip();
   tf2_ros::TransformBroadcaster br;
@@ -58,7 +61,7 @@ TEST(TfCommands, BaseFollowsTheTransform) {
   // connect, longer on a loaded machine).
   for (int k = 0; k < 3000 && !running(); ++k) {
     send(ros::Time::now(), -0.035);
-    ros::WallDuration(0.01).sleep();
+    clock.sleep(0.01);
   }
   ASSERT_TRUE(running()) << "the node never took the rest pose from tf";
   // 1 cm/s for 1 s; one clock reading per sample: the pose is where the motion is at its stamp.
@@ -70,7 +73,7 @@ TEST(TfCommands, BaseFollowsTheTransform) {
     if (t > 1.0) break;
     x = -0.035 + 0.01 * t;
     send(stamp, x);
-    ros::WallDuration(0.01).sleep();
+    clock.sleep(0.01);
   }
   // The last sample, then the transform stops (stale): the base holds where it is.
   send(ros::Time::now(), x);
@@ -82,7 +85,7 @@ TEST(TfCommands, BaseFollowsTheTransform) {
       },
       10.0))
       << "the base did not reach the last transform";
-  ros::WallDuration(0.2).sleep();
+  clock.sleep(0.2);
   const double tip1 = tip();
   EXPECT_NEAR(tip1 - tip0, x_end + 0.035, 0.0015);
   EXPECT_NEAR(x_end + 0.035, 0.010, 0.0005);

@@ -1,0 +1,401 @@
+// The flagship scenes under test (issue #39, item 5): the shipped DBS scenes loaded, built and
+// their brain shift solved, then the insertion, checked against facts that do not come from
+// the code under test: the shift's prescribed length, the STN inside the brain, the friction
+// law's share of the holder force, every constraint solve converged, and the left STN's error
+// bound against a finer run (dbs_fine, kept in test/data/reference/dbs_fine_stn.csv; made by
+// scripts/make_dbs_reference.sh). Forces are read through observables.hpp
+// (holder_force_base), never through the recorder's columns.
+//
+// Cost (CTest budget of issue #39): dbs_coarse is loaded and run once, to 9 s of the
+// insertion, and every test reads that run; dbs_fine and dbs_adaptive are loaded once each
+// (their brain shift only).
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <fstream>
+#include <map>
+#include <memory>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "needle_sim/core/blas_threads.hpp"
+#include "needle_sim/geometry/inside_test.hpp"
+#include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/observables.hpp"
+#include "needle_sim/sim/simulation.hpp"
+
+using namespace needle_sim;
+
+namespace {
+
+const std::string kSrc = NEEDLE_SIM_SOURCE_DIR;
+const std::string kScenes = kSrc + "/config/scenes/";
+const std::string kReference = kSrc + "/test/data/reference/dbs_fine_stn.csv";
+
+// The insertion compared with the reference: the cannula from its start to 9 s (the tip near
+// the left STN, the holder force at its largest), the STN's error every 50 steps.
+constexpr long kLastStep = 900;
+constexpr long kEvery = 50;
+
+// The shift the DBS scenes prescribe for the left STN (brain_shift.target_shift) and the
+// skull's gap (brain_shift.skull.gap).
+constexpr double kTargetShift = 0.0065;
+constexpr double kSkullGap = 0.010;
+
+Simulation::Options withTargetErrors() {
+  Simulation::Options o;
+  o.target_errors = true;
+  return o;
+}
+
+// The brain surface deformed with the tissue (the organ surface's vertices where the mesh
+// has them now).
+std::shared_ptr<const TriangleMesh> deformedBrain(const Simulation& sim) {
+  std::vector<Vec3> p;
+  sim.organSurface()->positions(sim.tissue().positions(), p);
+  return std::make_shared<const TriangleMesh>(p, sim.organSurface()->rest().triangles());
+}
+
+// One sample of the left STN at a step: its tracked point and its error estimate.
+struct StnSample {
+  long step = 0;
+  Vec3 position = Vec3::Zero(), qoi = Vec3::Zero();
+  double bound = 0;
+  bool valid = false;
+  double holder_axial = 0;  // the cannula's axial holder force (base frame x) [N]
+};
+
+StnSample sampleStn(const Simulation& sim, int stn) {
+  StnSample s;
+  s.step = sim.stepIndex();
+  s.position = sim.targetPosition(stn);
+  const TargetError& e = sim.targetError(stn);
+  s.valid = e.valid;
+  s.qoi = e.qoi;
+  s.bound = e.bound;
+  s.holder_axial = observe(sim).needles[sim.findNeedle("cannula")].holder_force_base.x();
+  return s;
+}
+
+// Steps `sim` to kLastStep, sampling the left STN every kEvery steps (step 0 included) and
+// calling `each` after every step.
+template <class Each>
+std::vector<StnSample> runInsertion(Simulation& sim, Each each) {
+  const int stn = sim.findTarget("STN_L");
+  std::vector<StnSample> out{sampleStn(sim, stn)};
+  while (sim.stepIndex() < kLastStep) {
+    sim.step();
+    each(sim);
+    if (sim.stepIndex() % kEvery == 0) out.push_back(sampleStn(sim, stn));
+  }
+  return out;
+}
+
+// dbs_coarse loaded once, its brain shift kept, then stepped to kLastStep; what the tests
+// read of it.
+struct CoarseRun {
+  std::unique_ptr<Simulation> sim;
+  BrainShiftResult shift;
+  Vec3 stn_rest = Vec3::Zero(), stn_shifted = Vec3::Zero(), stn_r_rest = Vec3::Zero(), stn_r_shifted = Vec3::Zero();
+  // distance of the left STN to the brain surface at rest, and of the shifted one to the
+  // deformed surface
+  double stn_depth_rest = 0, stn_depth_after_shift = 0;
+  bool stn_inside_after_shift = false, stn_r_inside_after_shift = false;
+  std::vector<StnSample> stn;
+  struct Step {
+    long step;
+    double axial_holder_force;  // cannula, base frame x, pushing in: negative
+    double path_length;         // cannula's cut path [m]
+    int constraints;            // cannula's constraint points (shaft points + tip)
+    InsertionState state;
+    bool converged;
+    double residual;
+    Vec3 tip;
+  };
+  std::vector<Step> steps;
+  int tissue_dofs = 0;
+};
+
+const CoarseRun& coarse() {
+  static const CoarseRun run = [] {
+    setBlasThreads(1);
+    CoarseRun r;
+    r.sim = std::make_unique<Simulation>(loadScene(kScenes + "dbs_coarse.yaml"), withTargetErrors());
+    Simulation& sim = *r.sim;
+    r.shift = sim.brainShift();
+    r.tissue_dofs = sim.tissue().mesh().numDofs();
+    const int l = sim.findTarget("STN_L"), rr = sim.findTarget("STN_R");
+    r.stn_rest = sim.targetRest(l), r.stn_shifted = sim.targetPosition(l);
+    r.stn_r_rest = sim.targetRest(rr), r.stn_r_shifted = sim.targetPosition(rr);
+    const auto brain = deformedBrain(sim);
+    InsideTest in(brain);
+    r.stn_inside_after_shift = in.inside(r.stn_shifted);
+    r.stn_r_inside_after_shift = in.inside(r.stn_r_shifted);
+    r.stn_depth_after_shift = brain->distance(r.stn_shifted);
+    r.stn_depth_rest = sim.organSurface()->rest().distance(r.stn_rest);
+    const int cannula = sim.findNeedle("cannula");
+    Observables o;
+    r.stn = runInsertion(sim, [&](const Simulation& s) {
+      observe(s, o);
+      const NeedleObservation& n = o.needles[cannula];
+      r.steps.push_back({s.stepIndex(), n.holder_force_base.x(), n.path_length, n.constraints, n.state,
+                         o.stats.constraint_converged, o.stats.constraint_residual, n.tip});
+    });
+    return r;
+  }();
+  return run;
+}
+
+// test/data/reference/dbs_fine_stn.csv: '#' lines (the first names the commit that made it),
+// a header, one row per sampled step.
+struct Reference {
+  std::string made_by;
+  std::vector<StnSample> rows;
+};
+
+Reference readReference() {
+  Reference ref;
+  std::ifstream in(kReference);
+  if (!in) return ref;
+  std::string line;
+  std::vector<std::string> header;
+  while (std::getline(in, line)) {
+    if (line.empty()) continue;
+    if (line[0] == '#') {
+      if (ref.made_by.empty()) ref.made_by = line;
+      continue;
+    }
+    std::vector<std::string> cells;
+    std::stringstream ss(line);
+    for (std::string c; std::getline(ss, c, ',');) cells.push_back(c);
+    if (header.empty()) {
+      header = cells;
+      continue;
+    }
+    std::map<std::string, double> v;
+    for (size_t k = 0; k < header.size() && k < cells.size(); ++k) v[header[k]] = std::stod(cells[k]);
+    StnSample s;
+    s.step = static_cast<long>(v["step"]);
+    s.position = Vec3(v["stn_x"], v["stn_y"], v["stn_z"]);
+    s.qoi = Vec3(v["qoi_x"], v["qoi_y"], v["qoi_z"]);
+    s.bound = v["bound"];
+    s.valid = std::isfinite(s.bound);
+    s.holder_axial = v["holder_axial"];
+    ref.rows.push_back(s);
+  }
+  return ref;
+}
+
+}  // namespace
+
+// The brain shift of the shipped coarse scene: the left STN moves by target_shift (the load
+// is scaled for it), towards posterior (gravity, the patient supine), the skull is touched
+// and not crossed, and both STNs stay inside the brain as it deformed.
+TEST(DbsCoarse, BrainShiftMovesTheLeftStnByTheTargetShiftInsideTheSkull) {
+  const CoarseRun& r = coarse();
+  ASSERT_TRUE(r.shift.done);
+  EXPECT_EQ(r.shift.target, "STN_L");
+  // The length the scene prescribes, measured on the tracked point itself (not the
+  // pre-step's own report), to 0.1 %.
+  const Vec3 u = r.stn_shifted - r.stn_rest;
+  EXPECT_NEAR(u.norm(), kTargetShift, 1e-3 * kTargetShift) << "shift " << u.transpose();
+  EXPECT_NEAR(r.shift.target_displacement.norm(), kTargetShift, 1e-3 * kTargetShift);
+  // Gravity is -y: the brain sinks towards posterior; most of the shift is along it.
+  EXPECT_LT(u.y(), -0.8 * u.norm());
+  // The load was scaled (not the unit load's shift by accident): the scale is not 1.
+  EXPECT_GT(std::abs(r.shift.load_scale - 1.0), 0.1);
+  // The skull: touched, crossed by at most 0.1 % of its gap.
+  EXPECT_GT(r.shift.contacts, 0);
+  EXPECT_LE(r.shift.max_penetration, 1e-3 * kSkullGap);
+  // The CIT168 left STN's centroid, and both STNs inside the brain as it deformed.
+  EXPECT_LT((r.stn_rest - Vec3(-0.0111, -0.0129, -0.0077)).norm(), 5e-4);
+  EXPECT_TRUE(r.stn_inside_after_shift);
+  EXPECT_TRUE(r.stn_r_inside_after_shift);
+  // The STN moved with the brain around it: its depth below the surface (7.6 mm, above the
+  // ventral midbrain) is kept to a fraction of the shift; a shift that moved the target but
+  // not the tissue around it (or the other way round) would change it by millimetres.
+  std::cout << "left STN " << r.stn_depth_rest * 1e3 << " mm below the brain's surface at rest, "
+            << r.stn_depth_after_shift * 1e3 << " mm after the shift of " << u.transpose() * 1e3 << " mm (load scale "
+            << r.shift.load_scale << ")\n";
+  EXPECT_GT(r.stn_depth_rest, 0.005);
+  EXPECT_NEAR(r.stn_depth_after_shift, r.stn_depth_rest, 0.15 * kTargetShift)
+      << "depth at rest " << r.stn_depth_rest << " m";
+  EXPECT_GT((r.stn_r_shifted - r.stn_r_rest).norm(), 1e-3);  // the right STN moves with the brain too
+}
+
+// The insertion on the coarse scene: the cannula punctures and goes in; the holder's axial
+// force grows with depth and is at least the grip pressure's friction on the shaft points
+// (each point's friction bound is friction * (|lateral| + 2 pi r grip_pressure spacing), and
+// a slipping point sits on it); no constraint solve misses its tolerance.
+TEST(DbsCoarse, HolderForceGrowsWithDepthAndEveryConstraintSolveConverges) {
+  const CoarseRun& r = coarse();
+  const Scene& sc = r.sim->scene();
+  const InteractionSettings& in = *sc.interaction;
+  const double radius = sc.needles[r.sim->findNeedle("cannula")].radius;
+  const double per_point = in.friction * 2 * M_PI * radius * in.grip_pressure * in.shaft_spacing;  // [N]
+  ASSERT_EQ(r.steps.size(), static_cast<size_t>(kLastStep));
+  int unconverged = 0;
+  double worst_residual = 0;
+  for (const auto& s : r.steps) {
+    unconverged += s.converged ? 0 : 1;
+    worst_residual = std::max(worst_residual, s.residual);
+  }
+  EXPECT_EQ(unconverged, 0);
+  EXPECT_LE(worst_residual, in.tolerance);
+  // Punctured on the way in; the cut path never longer than the cannula's advance since the
+  // puncture (10 mm/s) and, at the end, most of it.
+  long puncture = -1;
+  for (const auto& s : r.steps)
+    if (s.constraints > 0) {
+      puncture = s.step;
+      break;
+    }
+  ASSERT_GT(puncture, 0) << "the cannula never went in";
+  for (const auto& s : r.steps)
+    if (s.step >= puncture) ASSERT_LE(s.path_length, 0.010 * (s.step - puncture + 1) * sc.dt + 1e-3) << "step " << s.step;
+  const CoarseRun::Step& last = r.steps.back();
+  EXPECT_EQ(last.state, InsertionState::Inserted);
+  EXPECT_GT(last.path_length, 0.8 * 0.010 * (kLastStep - puncture) * sc.dt);
+  // Mean axial force (pushing in: -x on the holder) over depth bands of one shaft spacing
+  // each, from 8 mm to 40 mm: it grows from band to band.
+  std::vector<double> sum(4, 0), n(4, 0);
+  double worst_share = 1e300;  // the force over the grip's friction on the shaft points
+  long changed = 0;             // the last step whose number of constraint points changed
+  for (size_t k = 0; k < r.steps.size(); ++k) {
+    const CoarseRun::Step& s = r.steps[k];
+    if (k > 0 && s.constraints != r.steps[k - 1].constraints) changed = s.step;
+    if (s.constraints < 2) continue;
+    const int band = static_cast<int>(std::floor((s.path_length - 0.008) / 0.008));
+    if (band >= 0 && band < 4) sum[band] += -s.axial_holder_force, n[band] += 1;
+    // (a new point's friction builds up over its first steps, as the needle responds)
+    if (s.path_length < 0.040 && s.step > changed + 2)
+      worst_share = std::min(worst_share, -s.axial_holder_force / ((s.constraints - 1) * per_point));
+  }
+  for (int b = 0; b < 4; ++b) ASSERT_GT(n[b], 0) << "no step in band " << b;
+  for (int b = 1; b < 4; ++b) EXPECT_GT(sum[b] / n[b], sum[b - 1] / n[b - 1]) << "band " << b;
+  // The friction law: at least the grip's share on every shaft point (the needle's own inertia
+  // aside), while the cannula slides in.
+  EXPECT_GE(worst_share, 0.97) << "per point " << per_point << " N";
+  // and not wildly more (the lateral forces of a straight insertion are small): a regression
+  // guard on the force's size.
+  double share_at_40mm = 0;
+  for (const auto& s : r.steps)
+    if (s.path_length >= 0.035 && s.path_length < 0.040 && s.constraints >= 2)
+      share_at_40mm = -s.axial_holder_force / ((s.constraints - 1) * per_point);
+  EXPECT_LT(share_at_40mm, 2.0);
+  std::cout << "axial holder force by depth band (8-16, 16-24, 24-32, 32-40 mm):";
+  for (int b = 0; b < 4; ++b) std::cout << " " << sum[b] / n[b];
+  std::cout << " N; over the grip's share: at least " << worst_share << ", " << share_at_40mm << " at 35-40 mm\n";
+}
+
+// The dynamic test of the target error bound: at every 50th step of the insertion (0 to 9 s),
+// the coarse run's bound on the left STN's regularised displacement covers its difference from
+// the finer dbs_fine run at the same step (the reference), and is not loose beyond the ratio
+// measured when the reference was made.
+//
+// Reference: test/data/reference/dbs_fine_stn.csv, made by scripts/make_dbs_reference.sh at
+// commit 91dec52 (the physics of main on 2026-12-05; its first line names the commit).
+// Measured then (doc/verification.md): the difference 0.30-0.44 mm while the cannula
+// approaches (the shift's direction), rising to 5.0 mm at 9 s (the cannula pushes the STN);
+// bound / difference 6.6 at 9 s, 39-60 while the shift dominates.
+TEST(DbsCoarse, TargetErrorBoundCoversTheDifferenceFromTheFineReference) {
+  const Reference ref = readReference();
+  ASSERT_FALSE(ref.rows.empty()) << kReference << " missing or empty: run scripts/make_dbs_reference.sh";
+  std::cout << "reference: " << ref.made_by << "\n";
+  const CoarseRun& r = coarse();
+  ASSERT_EQ(r.stn.size(), ref.rows.size());
+  double min_ratio = 1e300, max_diff = 0, min_diff = 1e300;
+  for (size_t k = 0; k < r.stn.size(); ++k) {
+    const StnSample &c = r.stn[k], &f = ref.rows[k];
+    ASSERT_EQ(c.step, f.step);
+    ASSERT_TRUE(c.valid) << "no estimate at step " << c.step;
+    ASSERT_TRUE(std::isfinite(c.bound)) << "step " << c.step;
+    const double diff = (c.qoi - f.qoi).norm();
+    EXPECT_GE(c.bound, diff) << "step " << c.step << ": the bound does not cover the coarse-fine difference";
+    min_ratio = std::min(min_ratio, c.bound / diff);
+    max_diff = std::max(max_diff, diff);
+    min_diff = std::min(min_diff, diff);
+    std::cout << "step " << c.step << ": |coarse - fine| " << diff * 1e3 << " mm, bound " << c.bound * 1e3
+              << " mm, ratio " << c.bound / diff << "; holder force coarse " << c.holder_axial << " N, fine "
+              << f.holder_axial << " N\n";
+  }
+  // The comparison says something: the meshes differ by more than the reference's own
+  // uncertainty at every step, and by millimetres where the cannula pushes the STN.
+  EXPECT_GT(min_diff, 1e-4);
+  EXPECT_GT(max_diff, 2e-3);
+  // The difference from dbs_fine is itself an underestimate of the coarse run's error (by
+  // up to 2x for a first-order rate), so the bound must stay well above it; and a bound more
+  // than 10x the largest difference it must cover is too loose to act on. Measured: 6.6.
+  EXPECT_GT(min_ratio, 4.0);
+  EXPECT_LT(min_ratio, 10.0);
+}
+
+// dbs_fine (the reference's scene) loads, builds and shifts as prescribed, and its shifted STN
+// is where the reference says: the reference is of today's code (else: regenerate it).
+TEST(DbsFine, BrainShiftMatchesTheCommittedReference) {
+  setBlasThreads(1);
+  Simulation sim(loadScene(kScenes + "dbs_fine.yaml"));
+  ASSERT_TRUE(sim.brainShift().done);
+  EXPECT_GT(sim.tissue().mesh().numDofs(), 4 * coarse().tissue_dofs);  // one uniform refinement
+  const int l = sim.findTarget("STN_L");
+  const Vec3 u = sim.targetPosition(l) - sim.targetRest(l);
+  EXPECT_NEAR(u.norm(), kTargetShift, 1e-3 * kTargetShift);
+  EXPECT_LE(sim.brainShift().max_penetration, 1e-3 * kSkullGap);
+  EXPECT_TRUE(InsideTest(deformedBrain(sim)).inside(sim.targetPosition(l)));
+  const Reference ref = readReference();
+  ASSERT_FALSE(ref.rows.empty());
+  ASSERT_EQ(ref.rows[0].step, 0);
+  // 10 um: 3 % of the smallest coarse-fine difference the reference is used to measure.
+  EXPECT_LT((sim.targetPosition(l) - ref.rows[0].position).norm(), 1e-5)
+      << "the reference (" << ref.made_by << ") is not of this code: run scripts/make_dbs_reference.sh";
+  // The coarse mesh does not already agree with the fine one (else the bound's test says
+  // nothing).
+  EXPECT_GT((coarse().stn_shifted - sim.targetPosition(l)).norm(), 1e-4);
+}
+
+// dbs_adaptive: the pre-step refines where the estimate asks, solves the shift again on the
+// refined mesh, and keeps it; the shifted STN is nearer dbs_fine's than dbs_coarse's is.
+TEST(DbsAdaptive, PreStepRefinesAndComesCloserToTheFineShift) {
+  setBlasThreads(1);
+  Simulation sim(loadScene(kScenes + "dbs_adaptive.yaml"));
+  const BrainShiftResult& s = sim.brainShift();
+  ASSERT_TRUE(s.done);
+  EXPECT_GE(s.passes, 2);
+  EXPECT_GT(s.dofs, coarse().tissue_dofs);
+  EXPECT_EQ(s.dofs, sim.tissue().mesh().numDofs());
+  const int l = sim.findTarget("STN_L");
+  EXPECT_NEAR((sim.targetPosition(l) - sim.targetRest(l)).norm(), kTargetShift, 1e-3 * kTargetShift);
+  EXPECT_LE(s.max_penetration, 1e-3 * kSkullGap);
+  const Reference ref = readReference();
+  ASSERT_FALSE(ref.rows.empty());
+  const double adaptive = (sim.targetPosition(l) - ref.rows[0].position).norm();
+  const double coarse_off = (coarse().stn_shifted - ref.rows[0].position).norm();
+  std::cout << "shifted STN_L from dbs_fine's: adaptive " << adaptive * 1e3 << " mm (" << s.dofs
+            << " DOFs), coarse " << coarse_off * 1e3 << " mm (" << coarse().tissue_dofs << " DOFs)\n";
+  EXPECT_LT(adaptive, coarse_off);
+}
+
+// Writes the reference (scripts/make_dbs_reference.sh runs it): dbs_fine with target errors,
+// stepped as the coarse run is, the left STN every 50 steps. Not run by CTest.
+TEST(DbsReference, DISABLED_WriteFineReference) {
+  const char* out = std::getenv("NEEDLE_SIM_DBS_REFERENCE");
+  const char* commit = std::getenv("NEEDLE_SIM_DBS_REFERENCE_COMMIT");
+  ASSERT_TRUE(out && commit) << "set NEEDLE_SIM_DBS_REFERENCE and NEEDLE_SIM_DBS_REFERENCE_COMMIT";
+  setBlasThreads(1);
+  Simulation sim(loadScene(kScenes + "dbs_fine.yaml"), withTargetErrors());
+  const std::vector<StnSample> rows = runInsertion(sim, [](const Simulation&) {});
+  std::ofstream f(out);
+  f << "# made at commit " << commit << " by scripts/make_dbs_reference.sh (test_dbs DbsReference.DISABLED_WriteFineReference)\n"
+    << "# dbs_fine.yaml (" << sim.tissue().mesh().numDofs() << " tissue DOFs), the left STN every " << kEvery
+    << " steps to step " << kLastStep << ": tracked point, regularised displacement (qoi) and its error bound [m];\n"
+    << "# the cannula's axial holder force (observables.hpp holder_force_base.x, pushing in: negative) [N]\n"
+    << "step,stn_x,stn_y,stn_z,qoi_x,qoi_y,qoi_z,bound,holder_axial\n";
+  f.precision(12);
+  for (const StnSample& s : rows)
+    f << s.step << "," << s.position.x() << "," << s.position.y() << "," << s.position.z() << "," << s.qoi.x() << ","
+      << s.qoi.y() << "," << s.qoi.z() << "," << s.bound << "," << s.holder_axial << "\n";
+  ASSERT_TRUE(f.good());
+}
