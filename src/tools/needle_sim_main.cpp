@@ -25,6 +25,7 @@
 #include <iostream>
 #include <thread>
 #include <cerrno>
+#include <cstdlib>
 #include <cstring>
 #include <unistd.h>
 
@@ -253,6 +254,12 @@ int main(int argc, char** argv) {
     args.insert(args.end(), argv + 2, argv + argc);
     args.push_back(nullptr);
     if (!self.empty()) setenv("NEEDLE_SIM_TOOL", self.c_str(), 0);
+    // The script imports the package needle_sim: the environment's (a sourced devel or
+    // install space, `pip install -e .`) first, else this executable's (appended).
+    if (const std::string py = pythonPackageRoot(); !py.empty()) {
+      const char* path = std::getenv("PYTHONPATH");
+      setenv("PYTHONPATH", (path && *path ? std::string(path) + ":" + py : py).c_str(), 1);
+    }
     execv(args[0], args.data());
     std::cerr << "needle_sim: cannot run /usr/bin/python3 " << script << ": " << std::strerror(errno) << '\n';
     return 1;
