@@ -11,5 +11,6 @@ shift || true
 NAME="$(basename "$SCENE" .yaml)"
 OUT="$ROOT/results/$NAME"
 "$NEEDLE_SIM" run "$SCENE" --out "$OUT" --vtu-every 100 "$@"
-/usr/bin/python3 "$ROOT/scripts/plot_run.py" "$OUT"
+# in the devel space's environment: the Python package needle_sim
+"$DEVEL/env.sh" /usr/bin/python3 "$ROOT/scripts/plot_run.py" "$OUT"
 echo "open in ParaView: paraview $OUT/tissue.pvd $OUT/needles.pvd"

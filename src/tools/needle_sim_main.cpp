@@ -5,6 +5,7 @@
 //   needle_sim run config/scenes/phantom_8x4x4.yaml --out results/phantom_8x4x4
 //   needle_sim run config/scenes/phantom_8x4x4.yaml --out /tmp/r --set tissue.grid.cells=[16,8,8]
 //   needle_sim check config/scenes/cook_membrane.yaml --set tissue.grid.cells=[32,32,1]
+//   needle_sim check dbs_coarse.yaml --json --aim -0.036 0.020 0.062 -0.0111 -0.0129 -0.0077
 //   needle_sim bench --steps 30
 //   needle_sim soak config/scenes/phantom_insertion_adaptive.yaml --steps 100000
 //   needle_sim predict config/scenes/phantom_insertion_adaptive.yaml --duration 10 --advance 0.02 --dt 0.01
@@ -24,6 +25,7 @@
 #include <iostream>
 #include <thread>
 #include <cerrno>
+#include <cstdlib>
 #include <cstring>
 #include <unistd.h>
 
@@ -42,6 +44,7 @@
 #include "bag_output.hpp"
 #include "bench.hpp"
 #include "calibrate.hpp"
+#include "check.hpp"
 #include "predict.hpp"
 #include "steer.hpp"
 #include "share_dir.hpp"
@@ -210,19 +213,6 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   return 0;
 }
 
-int checkCommand(const std::string& scene_path, const std::vector<std::string>& sets) {
-  try {
-    const Scene scene = loadScene(scene_path, sets);
-    Simulation sim(scene);
-    std::printf("%s: ok (%d dofs, %d elements, %ld steps)\n", scene_path.c_str(), sim.numDofs(), sim.numElements(),
-                scene.numSteps());
-    return 0;
-  } catch (const InputError& e) {
-    std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
-    return kExitInput;
-  }
-}
-
 // The scene's value keys as their modules declare them (scene/scene_keys.hpp): a table per
 // section, or only the sections named; Markdown for doc/scene_format.md.
 int keysCommand(const std::vector<std::string>& only, bool markdown) {
@@ -264,6 +254,12 @@ int main(int argc, char** argv) {
     args.insert(args.end(), argv + 2, argv + argc);
     args.push_back(nullptr);
     if (!self.empty()) setenv("NEEDLE_SIM_TOOL", self.c_str(), 0);
+    // The script imports the package needle_sim: the environment's (a sourced devel or
+    // install space, `pip install -e .`) first, else this executable's (appended).
+    if (const std::string py = pythonPackageRoot(); !py.empty()) {
+      const char* path = std::getenv("PYTHONPATH");
+      setenv("PYTHONPATH", (path && *path ? std::string(path) + ":" + py : py).c_str(), 1);
+    }
     execv(args[0], args.data());
     std::cerr << "needle_sim: cannot run /usr/bin/python3 " << script << ": " << std::strerror(errno) << '\n';
     return 1;
@@ -326,9 +322,22 @@ int main(int argc, char** argv) {
   keys->add_option("section", key_sections, "only these sections (time, solver, tissue, tissue.grid, needle, needle.bevel, "
                                             "interaction, adaptivity, brain_shift)");
   keys->add_flag("--markdown", keys_markdown, "as the Markdown tables of doc/scene_format.md");
+  CheckOptions check_opts;
   auto* check = app.add_subcommand("check", "validate a scene and build its mesh, without running it");
-  check->add_option("scene", scene_path, "scene file (YAML)")->required();
-  check->add_option("--set", sets, "override a scene value: key.path=value (repeatable)");
+  check->add_option("scene", check_opts.scene, "scene file (YAML)")->required();
+  check->add_option("--set", check_opts.sets, "override a scene value: key.path=value (repeatable)");
+  check->add_flag("--json", check_opts.json,
+                  "print the scene as the loader resolved it (after extends and --set) as JSON: its tree, the "
+                  "needles with their --set prefixes and planned final tips, the targets and probes");
+  check->add_option("--aim", check_opts.aims,
+                    "ENTRY_X ENTRY_Y ENTRY_Z TARGET_X TARGET_Y TARGET_Z [m]: the --set overrides that move the needles "
+                    "rigidly, as one tool, so that the first one's planned final tip lands on the target and its axis "
+                    "on entry -> target (repeatable; implies --json: its \"aims\")")
+      ->type_size(6)
+      ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
+  check->add_option("--aim-needles", check_opts.aim_needles, "the needles --aim moves (default: all; the first in scene "
+                                                             "order is the one aimed)")
+      ->delimiter(',');
 
   BenchOptions bench_opts;
   auto* bench = app.add_subcommand("bench", "time the steps of a scene at several grids, split by phase");
@@ -424,6 +433,7 @@ int main(int argc, char** argv) {
     setBlasThreads(blas_threads);
     Simulation::setSetupThreads(threadsOrEveryCore(setup_threads));
     scene_path = resolveScene(scene_path);
+    if (*check) check_opts.scene = resolveScene(check_opts.scene);
     bench_opts.scene = resolveScene(bench_opts.scene);
     pred.scene = resolveScene(pred.scene);
     steer_opts.scene = resolveScene(steer_opts.scene);
@@ -435,7 +445,7 @@ int main(int argc, char** argv) {
   }
   try {
     if (*run) return runCommand(scene_path, out_dir, sets, quiet, rec_opts, bag_run);
-    if (*check) return checkCommand(scene_path, sets);
+    if (*check) return checkCommand(check_opts);
     if (*keys) return keysCommand(key_sections, keys_markdown);
     if (*bench) return benchCommand(bench_opts);
     if (*predict) return predictCommand(pred);

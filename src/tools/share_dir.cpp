@@ -4,6 +4,7 @@
 
 #include <cstdlib>
 #include <filesystem>
+#include <vector>
 
 namespace needle_sim {
 
@@ -37,6 +38,17 @@ std::string ensembleScript() {
     if (fs::exists(beside, ec)) return beside.string();
   }
   return std::string(NEEDLE_SIM_SOURCE_SHARE_DIR) + "/scripts/ensemble.py";
+}
+
+std::string pythonPackageRoot() {
+  std::error_code ec;
+  std::vector<fs::path> candidates;
+  if (const std::string exe = executablePath(); !exe.empty())
+    candidates.push_back(fs::path(exe).parent_path().parent_path() / "python3" / "dist-packages");
+  candidates.push_back(fs::path(NEEDLE_SIM_SOURCE_SHARE_DIR) / "src");
+  for (const fs::path& c : candidates)
+    if (fs::exists(c / "needle_sim" / "__init__.py", ec)) return fs::weakly_canonical(c, ec).string();
+  return {};
 }
 
 std::string resolveScene(const std::string& path) {

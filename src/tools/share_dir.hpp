@@ -16,5 +16,9 @@ std::string executablePath();
 // the executable (installed: <prefix>/lib/needle_sim/; devel space: catkin's relay to the
 // source), else the source tree's scripts/ensemble.py.
 std::string ensembleScript();
+// Where the Python package needle_sim that goes with this executable is (the folder holding
+// needle_sim/): <prefix>/lib/python3/dist-packages beside the executable (install or devel
+// space: catkin_python_setup), else the source tree's src/; empty if neither has it.
+std::string pythonPackageRoot();
 
 }  // namespace needle_sim

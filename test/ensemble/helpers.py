@@ -2,16 +2,13 @@
 import csv
 import os
 import subprocess
-import sys
 import tempfile
+
+from needle_sim import paths
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SCRIPTS = os.path.join(ROOT, "scripts")
-sys.path.insert(0, SCRIPTS)
-
-import package_paths  # noqa: E402
-
-TOOL = package_paths.tool()
+TOOL = paths.tool()
 SCRIPT = os.path.join(SCRIPTS, "ensemble.py")
 SCENE = os.path.join(ROOT, "config", "scenes", "phantom_insertion_8x4x4.yaml")
 # The phantom insertion cut short (0.6 s: the tip is 3 mm into the block; a run takes about

@@ -161,6 +161,10 @@ class ToolHandsOver(unittest.TestCase):
         h = subprocess.run([helpers.TOOL, "ensemble", "--help"], capture_output=True, text=True)
         self.assertEqual(h.returncode, 0, h.stderr)
         self.assertIn("usage: needle_sim ensemble", h.stdout)
+        # Without a sourced environment the tool hands over to its own package (devel space).
+        bare = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "ROS_PACKAGE_PATH")}
+        h = subprocess.run([helpers.TOOL, "ensemble", "--help"], capture_output=True, text=True, env=bare)
+        self.assertEqual(h.returncode, 0, h.stderr)
         out = out_dir("tool")
         # with the target's error bound (needle_sim run --target-error), every 100th step
         p = subprocess.run([helpers.TOOL, "ensemble", SCENE, "--samples", "2", "--seed", "1", "--workers", "1", "--no-plot",

@@ -8,8 +8,9 @@ import unittest
 import numpy as np
 
 import helpers
-from needle_sim_ensemble import design, statistics, trajectories
-from needle_sim_ensemble.distributions import UsageError, parse_all, parse_vary
+from needle_sim.ensemble import design, statistics, trajectories
+from needle_sim.ensemble.distributions import UsageError, parse_all, parse_vary
+from needle_sim.scene_check import check
 
 
 class Distributions(unittest.TestCase):
@@ -98,7 +99,12 @@ class Designs(unittest.TestCase):
 
 
 class Trajectories(unittest.TestCase):
-    scene = trajectories.read_scene(os.path.join(helpers.ROOT, "config", "scenes", "dbs_adaptive.yaml"))
+    """The --trajectories file's poses, computed by the tool (`needle_sim check --aim`)."""
+    scene_file = os.path.join(helpers.ROOT, "config", "scenes", "dbs_coarse.yaml")
+
+    @classmethod
+    def setUpClass(cls):
+        cls.scene = check(helpers.TOOL, cls.scene_file)
 
     def write(self, text):
         path = os.path.join(helpers.out_dir("trajectories"), "t.yaml")
@@ -115,38 +121,50 @@ class Trajectories(unittest.TestCase):
         return out
 
     def test_entry_points_aim_the_tool_at_the_target(self):
-        # The scene's own line (its tip start -> its aim) gives back its poses; another entry
-        # turns cannula and electrode as one: tips end on the target, axis along entry -> target,
-        # the electrode's base 10 mm behind the cannula's on that axis.
-        needles = trajectories.scene_needles(self.scene)
-        aim = trajectories.scene_aim(needles[0][2], "cannula")
-        d0 = np.array(needles[0][2]["base"]["direction"])
-        start = aim - 0.0872 * d0
+        # The scene's own line (its tip at rest -> its planned final tip) gives back its poses;
+        # another entry turns cannula and electrode as one: tips end on the target, axis along
+        # entry -> target, the electrode's base 10 mm behind the cannula's on that axis.
+        needles = self.scene["needles"]
+        start = np.array(needles[0]["rest_tip"])
         target = [-11.1, -12.9, -7.7]
         path = self.write(f"units: mm\nneedles: [cannula, electrode]\ntrajectories:\n"
                           f"  - {{name: scene, entry: {list(start * 1e3)}}}\n"
                           f"  - {{name: lateral, entry: [-36, 20, 62], target: {target}}}\n"
                           f"  - {{name: raw, set: {{interaction.friction: 0.1}}}}\n")
-        t = trajectories.load(path, self.scene)
+        t = trajectories.load(path, helpers.TOOL, self.scene_file)
         self.assertEqual([x.name for x in t], ["scene", "lateral", "raw"])
         same = self.poses(t[0])
-        for i, (_, prefix, nd) in enumerate(needles):
-            np.testing.assert_allclose(same[f"{prefix}.base.position"], nd["base"]["position"], atol=1e-9)
-            np.testing.assert_allclose(same[f"{prefix}.base.direction"], nd["base"]["direction"], atol=1e-12)
+        for n in needles:
+            np.testing.assert_allclose(same[f"{n['set_prefix']}.base.position"], n["base_position"], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(same[f"{n['set_prefix']}.base.direction"], n["base_direction"], rtol=0, atol=1e-12)
         p = self.poses(t[1])
         axis = np.array(target) - np.array([-36, 20, 62])
         axis /= np.linalg.norm(axis)
-        # The cannula's tip ends exactly on the target; the electrode's within the scene's
-        # 6-digit coordinates of its base (1 um), as in the scene itself.
+        # The cannula's tip (base + advance x axis + length x unit axis, as the tool moves it)
+        # ends exactly on the target; the electrode's within the scene's 6-digit coordinates
+        # of its base (1 um), as in the scene itself.
         for prefix, length, tol in (("needles.0", 0.12, 1e-12), ("needles.1", 0.13, 2e-6)):
             d = p[f"{prefix}.base.direction"]
             self.assertAlmostEqual(np.linalg.norm(d), 1.0, delta=1e-6)  # as the scene's (6 digits)
-            np.testing.assert_allclose(d / np.linalg.norm(d), axis, atol=1e-12)
-            np.testing.assert_allclose(p[f"{prefix}.base.position"] + (length + 0.0872) * d, np.array(target) * 1e-3,
-                                       rtol=0, atol=tol)
+            np.testing.assert_allclose(d / np.linalg.norm(d), axis, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(p[f"{prefix}.base.position"] + 0.0872 * d + length * d / np.linalg.norm(d),
+                                       np.array(target) * 1e-3, rtol=0, atol=tol)
         np.testing.assert_allclose(p["needles.0.base.position"] - p["needles.1.base.position"], 0.01 * axis, rtol=0, atol=2e-6)
         self.assertAlmostEqual(t[1].info["entry_target_distance"], np.linalg.norm(np.array(target) - [-36, 20, 62]) * 1e-3)
         self.assertEqual(t[2].sets, ["interaction.friction=0.1"])
+        # The tool's loader, given the computed overrides, puts the planned final tip on the target.
+        aimed = check(helpers.TOOL, self.scene_file, t[1].sets)
+        np.testing.assert_allclose(aimed["needles"][0]["planned_tip"], np.array(target) * 1e-3, rtol=0, atol=1e-12)
+
+    def test_the_study_set_is_the_scene_aimed(self):
+        # The poses are those of the scene as the study runs it, --set applied: a cannula
+        # advanced 2.8 mm farther starts that much farther back, its tip still ending on the target.
+        target = [-11.1, -12.9, -7.7]
+        sets = ["needles.0.motion.1.advance=0.09"]
+        path = self.write(f"units: mm\ntarget: {target}\ntrajectories: [{{name: a, entry: [-36, 20, 62]}}]\n")
+        t = trajectories.load(path, helpers.TOOL, self.scene_file, sets)
+        aimed = check(helpers.TOOL, self.scene_file, sets + t[0].sets)
+        np.testing.assert_allclose(aimed["needles"][0]["planned_tip"], np.array(target) * 1e-3, rtol=0, atol=1e-12)
 
     def test_bad_files(self):
         for text, words in [("", "no trajectories"), ("[]", "no trajectories"), ("trajectories: []", "no trajectories"),
@@ -154,9 +172,10 @@ class Trajectories(unittest.TestCase):
                             ("needles: [drill]\ntrajectories: [{entry: [0,0,0]}]", "no needle 'drill'"),
                             ("- {name: a, entry: [0,0,0]}\n- {name: a, entry: [0,0,1]}", "used twice"),
                             ("units: inch\ntrajectories: [{entry: [0,0,0]}]", "units 'inch'"),
-                            ("- {entri: [0,0,0]}", "unknown key 'entri'")]:
+                            ("- {entri: [0,0,0]}", "unknown key 'entri'"),
+                            ("- {name: a, entry: [0,0,0], target: [0,0,0]}", "the entry point and the target coincide")]:
             with self.assertRaises(UsageError, msg=text) as cm:
-                trajectories.load(self.write(text), self.scene)
+                trajectories.load(self.write(text), helpers.TOOL, self.scene_file)
             self.assertIn(words, str(cm.exception))
 
 

@@ -400,3 +400,64 @@ TEST(TrajectoryReplan, ReaimsAStraightInsertionThroughItsEntryPoint) {
   for (auto& k : idle.motion) k.position = n.base_position;
   EXPECT_THROW(replanFor(idle, shift), std::invalid_argument);
 }
+
+// Aiming a tool anew (needle/trajectory_replan.hpp rigidAim; `needle_sim check --aim`): cannula
+// and electrode moved as one body so that the cannula's planned final tip (its deepest
+// keyframe's, the rule of replanFor) lands on the target and its axis on entry -> target.
+TEST(TrajectoryReplan, RigidAimPutsThePlannedFinalTipOnTheTarget) {
+  NeedleParameters cannula;
+  cannula.name = "cannula";
+  cannula.length = 0.12;
+  // As a scene gives it: unit to 6 digits, not exactly.
+  cannula.base_direction = Vec3(0.238161, -0.414576, -0.878297);
+  cannula.base_position = Vec3(-0.060446, 0.072999, 0.174282);
+  for (double a : {0.0, 0.0872, 0.03})  // in, then withdrawn
+    cannula.motion.push_back({a * 100, cannula.base_position + a * cannula.base_direction, cannula.base_direction, 0.0});
+  NeedleParameters electrode = cannula;
+  electrode.name = "electrode";
+  electrode.length = 0.13;
+  electrode.base_position = cannula.base_position - 0.01 * cannula.base_direction;
+  for (auto& k : electrode.motion) k.position -= 0.01 * cannula.base_direction;
+  const Vec3 entry(-0.036, 0.020, 0.062), target(-0.0111, -0.0129, -0.0077);
+  auto tip = [](const NeedleParameters& n, int k) {
+    return Vec3(n.motion[k].position + n.length * n.motion[k].direction.normalized());
+  };
+
+  const PlannedTip planned = plannedFinalTip(cannula);
+  EXPECT_EQ(planned.keyframe, 1);
+  EXPECT_LT((planned.tip - tip(cannula, 1)).norm(), 1e-15);
+  const RigidAim aim = rigidAim(cannula, entry, target);
+  const NeedleParameters c = rigidlyMoved(cannula, aim), e = rigidlyMoved(electrode, aim);
+  EXPECT_LT((tip(c, 1) - target).norm(), 1e-15);
+  EXPECT_LT((plannedFinalTip(c).tip - target).norm(), 1e-15);
+  EXPECT_LT((c.base_direction.normalized() - (target - entry).normalized()).norm(), 1e-15);
+  EXPECT_NEAR(c.base_direction.norm(), cannula.base_direction.norm(), 1e-15);  // turned, not renormalised
+  // One body: the electrode keeps its place on the cannula's axis, 1 cm behind, and its tip
+  // (0.13 = 0.12 + 0.01 m from its base) ends with the cannula's, to the 6 digits of the axis.
+  EXPECT_LT((c.base_position - e.base_position - 0.01 * c.base_direction).norm(), 1e-15);
+  EXPECT_LT((tip(e, 1) - target).norm(), 1e-7);
+  for (size_t k = 0; k < c.motion.size(); ++k) EXPECT_EQ(c.motion[k].t, cannula.motion[k].t);
+  EXPECT_NEAR(aim.angle(), std::acos(cannula.base_direction.normalized().dot((target - entry).normalized())), 1e-12);
+  EXPECT_THROW(rigidAim(cannula, target, target), std::invalid_argument);
+
+  // The planned final tip is the deepest keyframe's, not the largest advance's: a needle that
+  // goes 10 mm in and is then pulled back 20 mm behind its start has its deepest keyframe
+  // last. Its tip lands on the target; the largest advance's 30 mm away.
+  NeedleParameters back = cannula;
+  back.motion.clear();
+  for (double a : {0.0, 0.01, -0.02})
+    back.motion.push_back({std::abs(a) * 100 + back.motion.size(), back.base_position + a * back.base_direction,
+                           back.base_direction, 0.0});
+  EXPECT_EQ(plannedFinalTip(back).keyframe, 2);
+  const NeedleParameters b = rigidlyMoved(back, rigidAim(back, entry, target));
+  EXPECT_LT((tip(b, 2) - target).norm(), 1e-15);
+  EXPECT_NEAR((tip(b, 1) - target).norm(), 0.03, 1e-7);
+
+  // A full-pose keyframe (off the axis) moves with the tool too.
+  NeedleParameters side = cannula;
+  side.motion[1].position += Vec3(0.002, 0, 0);
+  side.motion[1].direction = Vec3(0.3, -0.4, -0.866).normalized();
+  const NeedleParameters s = rigidlyMoved(side, rigidAim(side, entry, target));
+  EXPECT_EQ(plannedFinalTip(side).keyframe, 1);
+  EXPECT_LT((tip(s, 1) - target).norm(), 1e-15);
+}

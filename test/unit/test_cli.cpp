@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -567,4 +568,91 @@ TEST(Cli, AxialForceHasOneSignInEveryReport) {
       EXPECT_LT(std::stod(fit["measured"][i]), 0);
       EXPECT_LT(std::stod(fit["start"][i]), 0);
     }
+}
+
+// `needle_sim check --json` (doc/cli.md): the scene as the loader resolved it, for the Python
+// to read instead of re-implementing `extends` and --set. phantom_insertion_16x8x8 extends
+// phantom_insertion_8x4x4: its tree is the base's with its own name, description and cells;
+// written out and checked again, that tree is the same scene.
+TEST(Cli, CheckJsonIsTheSceneTheLoaderResolved) {
+  const std::string scenes = kSrc + "/config/scenes/";
+  const json fine = json::parse(capture("'" + kTool + "' check '" + scenes + "phantom_insertion_16x8x8.yaml' --json"));
+  json base = json::parse(capture("'" + kTool + "' check '" + scenes + "phantom_insertion_8x4x4.yaml' --json"));
+  EXPECT_EQ(fine["scene"]["tissue"]["grid"]["cells"], json::parse("[16, 8, 8]"));
+  EXPECT_FALSE(fine["scene"].contains("extends"));
+  EXPECT_EQ(fine["scene"]["tissue"]["material"]["young"], 1e7);  // the base's value, a number
+  base["scene"]["tissue"]["grid"]["cells"] = fine["scene"]["tissue"]["grid"]["cells"];
+  base["scene"]["name"] = fine["scene"]["name"];
+  base["scene"]["description"] = fine["scene"]["description"];
+  EXPECT_EQ(fine["scene"], base["scene"]);
+  EXPECT_EQ(fine["needles"], base["needles"]);
+  EXPECT_EQ(fine["needles"][0]["set_prefix"], "needle");
+  EXPECT_EQ(fine["needles"][0]["planned_keyframe"], 1);  // advance 0.023, then withdrawn
+
+  // --set applies after extends, as in the loader; the tree written out is the same scene.
+  const std::string set = " --set tissue.grid.cells=[12,6,6] --set needle.base.position=[-0.04,0.01,0.011]";
+  const json changed = json::parse(capture("'" + kTool + "' check '" + scenes + "phantom_insertion_16x8x8.yaml' --json" + set));
+  EXPECT_EQ(changed["scene"]["tissue"]["grid"]["cells"], json::parse("[12, 6, 6]"));
+  EXPECT_EQ(changed["needles"][0]["base_position"], json::parse("[-0.04, 0.01, 0.011]"));
+  const fs::path out = freshDir("check_json");
+  fs::create_directories(out);
+  std::ofstream(out / "tree.yaml") << changed["scene"].dump();
+  const json again = json::parse(capture("'" + kTool + "' check '" + (out / "tree.yaml").string() + "' --json"));
+  EXPECT_EQ(again["scene"], changed["scene"]);
+  for (const char* k : {"dofs", "elements", "steps", "needles", "targets"}) EXPECT_EQ(again[k], changed[k]) << k;
+  EXPECT_EQ(changed["dofs"], 3 * 13 * 7 * 7 + 6 * 17);  // the 12x6x6 grid's nodes and the needle's
+
+  // Invalid input: exit 2, nothing on stdout.
+  EXPECT_EQ(runTool("check '" + scenes + "phantom_insertion_16x8x8.yaml' --json --set tissue.grid.cells=[0,1,1]").status, 2);
+  EXPECT_EQ(capture("'" + kTool + "' check '" + scenes + "phantom_insertion_16x8x8.yaml' --json --set tissue.grid.cells=[0,1,1] 2>/dev/null"), "");
+}
+
+// `needle_sim check --aim` (doc/cli.md): the overrides that move the needles rigidly so that
+// the first one's planned final tip, its deepest keyframe's (needle/trajectory_replan.hpp,
+// not its largest advance), lands on the target. The needle here goes 10 mm in, then is
+// pulled back 20 mm behind its start: its deepest keyframe is the last.
+TEST(Cli, CheckAimPutsTheDeepestKeyframesTipOnTheTarget) {
+  const std::string scene = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml";
+  const std::string motion = " --set 'needle.motion=[{t: 0, advance: 0}, {t: 1, advance: 0.01}, {t: 3, advance: -0.02}]'";
+  const double entry[3] = {-0.08, 0.0, 0.0}, target[3] = {-0.05, 0.01, 0.03};  // outside the box
+  char aim[256];
+  std::snprintf(aim, sizeof aim, " --aim %.17g %.17g %.17g %.17g %.17g %.17g", entry[0], entry[1], entry[2], target[0],
+                target[1], target[2]);
+  const json out = json::parse(capture("'" + kTool + "' check '" + scene + "'" + motion + aim));
+  ASSERT_EQ(out["needles"][0]["planned_keyframe"], 2);
+  ASSERT_EQ(out["aims"].size(), 1u);
+  const json& a = out["aims"][0];
+  EXPECT_EQ(a["reference"], "needle");
+  std::string sets;
+  for (const auto& s : a["set"]) sets += " --set '" + s.get<std::string>() + "'";
+  ASSERT_EQ(a["set"].size(), 2u);  // base.position, base.direction (advance keyframes follow the base)
+
+  // Checked again with the overrides: the planned final tip is on the target.
+  const json moved = json::parse(capture("'" + kTool + "' check '" + scene + "'" + motion + sets + " --json"));
+  ASSERT_TRUE(moved.contains("needles")) << sets;
+  const json& n = moved["needles"][0];
+  double axis_norm = 0, d[3], p[3];
+  for (int i = 0; i < 3; ++i) {
+    d[i] = n["base_direction"][i].get<double>();
+    p[i] = n["base_position"][i].get<double>();
+    axis_norm += (target[i] - entry[i]) * (target[i] - entry[i]);
+    EXPECT_NEAR(n["planned_tip"][i].get<double>(), target[i], 1e-12) << i;
+  }
+  axis_norm = std::sqrt(axis_norm);
+  // Along entry -> target; the deepest keyframe's tip (advance -0.02) on the target, the
+  // largest advance's (0.01) 30 mm from it.
+  double deepest = 0, largest = 0;
+  for (int i = 0; i < 3; ++i) {
+    EXPECT_NEAR(d[i], (target[i] - entry[i]) / axis_norm, 1e-15) << i;
+    deepest += std::pow(p[i] + (0.032 - 0.02) * d[i] - target[i], 2);
+    largest += std::pow(p[i] + (0.032 + 0.01) * d[i] - target[i], 2);
+  }
+  EXPECT_LT(std::sqrt(deepest), 1e-12);
+  EXPECT_NEAR(std::sqrt(largest), 0.03, 1e-12);
+
+  // Invalid aims: exit 2.
+  EXPECT_EQ(runTool("check '" + scene + "' --aim 0 0 0 0 0 0").status, 2);          // entry = target
+  EXPECT_EQ(runTool("check '" + scene + "' --aim 0 0 0 1 1").status, 2);            // five numbers
+  EXPECT_EQ(runTool("check '" + scene + "' --aim 0 0 0 1 1 1 --aim-needles drill").status, 2);
+  EXPECT_EQ(runTool("check '" + scene + "' --aim-needles needle").status, 2);        // without --aim
 }

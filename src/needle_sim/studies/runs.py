@@ -7,16 +7,16 @@ import os
 import subprocess
 import sys
 
-import package_paths
+from .. import paths
 
-SCENES = os.path.join(package_paths.share_dir(), "config", "scenes")
+SCENES = os.path.join(paths.share_dir(), "config", "scenes")
 
 
 def parse_args(doc, name):
     """--out (results/<name>), --tool, --reuse; checks the tool and makes the output folder."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default=package_paths.results_dir(name))
-    ap.add_argument("--tool", default=package_paths.tool())
+    ap.add_argument("--out", default=paths.results_dir(name))
+    ap.add_argument("--tool", default=paths.tool())
     ap.add_argument("--reuse", action="store_true", help="keep runs whose summary.json says ok")
     args = ap.parse_args()
     if not os.access(args.tool, os.X_OK):

@@ -16,7 +16,7 @@ import secrets
 import sys
 import time
 
-import package_paths
+from .. import paths
 
 from . import design as design_mod
 from . import plots, statistics, store, trajectories
@@ -53,7 +53,7 @@ def parser():
     ap.add_argument("--keep-runs", action="store_true", help="keep each run's folder as DIR/runs/NNNNN")
     ap.add_argument("--resume", action="store_true", help="continue the study in DIR: run only what is missing")
     ap.add_argument("--no-plot", action="store_true", help="no figures")
-    ap.add_argument("--tool", default=package_paths.tool(), help="the needle_sim tool (default: %(default)s)")
+    ap.add_argument("--tool", default=paths.tool(), help="the needle_sim tool (default: %(default)s)")
     return ap
 
 
@@ -65,7 +65,7 @@ def resolve_scene(name):
         if not os.path.isfile(name):
             raise UsageError(f"scene {name}: no such file")
         return os.path.abspath(name), os.path.abspath(name)
-    local = package_paths.scene(name)
+    local = paths.scene(name)
     if not os.path.isfile(local):
         raise UsageError(f"scene {name}: no such file (nor in {os.path.dirname(local)})")
     return name, local
@@ -74,7 +74,7 @@ def resolve_scene(name):
 def resolve_trajectories(path):
     if os.path.exists(path) or "/" in path:
         return path
-    shipped = os.path.join(package_paths.share_dir(), "config", "studies", path)
+    shipped = os.path.join(paths.share_dir(), "config", "studies", path)
     return shipped if os.path.exists(shipped) else path
 
 
@@ -90,7 +90,7 @@ def new_definition(a):
     traj = None
     if a.trajectories:
         path = resolve_trajectories(a.trajectories)
-        traj = [t.to_json() for t in trajectories.load(path, trajectories.read_scene(scene_file))]
+        traj = [t.to_json() for t in trajectories.load(path, a.tool, scene_file, a.set or [])]
     return {"scene": scene_arg, "scene_file": scene_file, "vary": vary, "sampling": a.sampling or "lhs",
             "samples": a.samples if a.samples is not None else 1,
             "seed": a.seed if a.seed is not None else secrets.randbits(32),

@@ -1,0 +1,107 @@
+"""Does the ROS node keep its deadlines over a whole insertion with a client streaming poses?
+(issue #18, doc/benchmarks.md "Bounded step time"). Acts as the robot: streams
+geometry_msgs/PoseStamped base poses to a running needle_sim node (~command_source: topic) at
+--rate Hz along a straight insertion (advance --depth at --speed, hold, withdraw), and reads
+the node's ~status: steps done, late steps (finished more than a period after they were due)
+and skipped ticks (a tick that found the previous step not started), counted over the
+insertion (differences of the lifetime counters), with the machine's load average.
+
+    source devel/setup.bash
+    roslaunch needle_sim sim.launch scene:=$PWD/config/scenes/phantom_insertion_adaptive.yaml command_source:=topic &
+    scripts/node_deadlines.py --rate 500
+
+Prints one line: steps, late steps and skipped ticks (counts and % of the steps), the
+largest step, the load average; exit status 0 (a measurement, not a test).
+"""
+import argparse
+import math
+import os
+import threading
+
+import rospy
+from geometry_msgs.msg import PoseStamped
+from needle_sim.msg import SimStatus
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--node", default="needle_sim")
+    ap.add_argument("--needle", default="needle")
+    ap.add_argument("--rate", type=float, default=500.0, help="poses per second")
+    ap.add_argument("--base", type=float, nargs=3, default=[-0.035, 0.01, 0.01], help="the base at rest [m]")
+    ap.add_argument("--direction", type=float, nargs=3, default=[1.0, 0.0, 0.0])
+    ap.add_argument("--depth", type=float, default=0.023, help="advance [m]")
+    ap.add_argument("--speed", type=float, default=0.01, help="[m/s]")
+    ap.add_argument("--hold", type=float, default=0.2, help="[s]")
+    ap.add_argument("--frame", default="tissue")
+    ap.add_argument("--status-at-ends", action="store_true",
+                    help="read ~status only before and after the insertion (no 1 kHz status stream to the client: "
+                         "the largest step is then not seen)")
+    args = ap.parse_args(rospy.myargv()[1:])
+    rospy.init_node("node_deadlines", anonymous=True)
+    lock = threading.Lock()
+    last = {}
+
+    def on_status(m):
+        with lock:
+            last["m"] = m
+
+    sub = rospy.Subscriber(args.node + "/status", SimStatus, on_status, queue_size=1)
+    pub = rospy.Publisher("/%s/%s/command_pose" % (args.node, args.needle), PoseStamped, queue_size=10)
+    n = math.sqrt(sum(c * c for c in args.direction))
+    d = [c / n for c in args.direction]
+    # The smallest rotation carrying x onto d (the pose convention: x along the needle).
+    w = 1.0 + d[0]
+    q = (w, 0.0, -d[2], d[1]) if w > 1e-9 else (0.0, 0.0, 1.0, 0.0)
+    qn = math.sqrt(sum(c * c for c in q))
+    q = [c / qn for c in q]
+    while not rospy.is_shutdown() and "m" not in last:
+        rospy.sleep(0.05)
+    t_in = args.depth / args.speed
+    total = 2 * t_in + args.hold
+
+    def pose_at(t):
+        a = args.speed * t if t < t_in else args.depth if t < t_in + args.hold else max(0.0, args.depth - args.speed * (t - t_in - args.hold))
+        p = PoseStamped()
+        p.header.stamp = rospy.Time.now()
+        p.header.frame_id = args.frame
+        p.pose.position.x, p.pose.position.y, p.pose.position.z = [b + a * c for b, c in zip(args.base, d)]
+        p.pose.orientation.w, p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z = q
+        return p
+
+    # The rest pose until the node runs, then the insertion.
+    for _ in range(20):
+        pub.publish(pose_at(0.0))
+        rospy.sleep(0.01)
+    with lock:
+        m0 = last["m"]
+    if args.status_at_ends:
+        sub.unregister()
+    rate = rospy.Rate(args.rate)
+    t0 = rospy.Time.now()
+    step_max = 0.0
+    while not rospy.is_shutdown():
+        t = (rospy.Time.now() - t0).to_sec()
+        if t > total + 0.2:
+            break
+        pub.publish(pose_at(t))
+        if not args.status_at_ends:
+            with lock:
+                step_max = max(step_max, last["m"].step_ms)
+        rate.sleep()
+    if args.status_at_ends:
+        last["m"] = rospy.wait_for_message(args.node + "/status", SimStatus)
+    with lock:
+        m1 = last["m"]
+    steps = m1.step - m0.step if m1.step >= m0.step else m1.step
+    late = m1.late_steps - m0.late_steps
+    skipped = m1.skipped_ticks - m0.skipped_ticks
+    load = os.getloadavg()
+    print("node_deadlines: %d steps over %.1f s of insertion at %.0f poses/s: %d late (%.2f %%), %d skipped ticks "
+          "(%.2f %%), largest step seen %.2f ms, %d commands rejected, load average %.2f %.2f %.2f" % (
+              steps, total, args.rate, late, 100.0 * late / max(steps, 1), skipped, 100.0 * skipped / max(steps, 1),
+              step_max, m1.rejected_commands - m0.rejected_commands, load[0], load[1], load[2]))
+
+
+if __name__ == "__main__":
+    main()
