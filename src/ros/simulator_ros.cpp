@@ -25,6 +25,7 @@
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/denormals.hpp"
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/scene/scene_check.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "node_parameters.hpp"
 #include "output_queue.hpp"
@@ -39,6 +40,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   // (~setup_threads, 1 by default; 0: every core).
   Simulation::setSetupThreads(threadsOrEveryCore(P.setup_threads));
   scene_ = loadScene(P.scene_file, P.overrides);
+  for (const std::string& w : sceneWarnings(scene_)) ROS_WARN_STREAM("needle_sim: " << w);
   // A real-time loop takes a refreshed factor as soon as it is ready: no step waits for it
   // (doc/ros_api.md, ~deterministic_factor; the results then vary within the CG tolerance).
   if (!P.deterministic_factor) scene_.solver.linear.async_lag = 0;

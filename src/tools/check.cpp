@@ -13,6 +13,7 @@
 
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/needle/trajectory_replan.hpp"
+#include "needle_sim/scene/scene_check.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/scene/scene_overrides.hpp"
 #include "needle_sim/sim/simulation.hpp"
@@ -169,6 +170,7 @@ int checkCommand(const CheckOptions& o) {
     for (double v : o.aims)
       if (!std::isfinite(v)) throw InputError(o.scene, "--aim", "expected finite numbers");
     const Scene scene = loadScene(o.scene, o.sets);
+    for (const std::string& w : sceneWarnings(scene)) std::cerr << "needle_sim: warning: " << w << '\n';
     Simulation sim(scene);
     if (!o.json && o.aims.empty()) {
       std::printf("%s: ok (%d dofs, %d elements, %ld steps)\n", o.scene.c_str(), sim.numDofs(), sim.numElements(),

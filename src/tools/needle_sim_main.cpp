@@ -37,6 +37,7 @@
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/io/run_recorder.hpp"
 #include "needle_sim/scene/scene_keys.hpp"
+#include "needle_sim/scene/scene_check.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
@@ -73,6 +74,7 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   int bag_needle = 0;
   try {
     scene = loadScene(scene_path, sets);
+    for (const std::string& w : sceneWarnings(scene)) std::cerr << "needle_sim: warning: " << w << '\n';
     if (bag_run.given()) {
       if (bag_run.pose_topic.empty()) throw InputError("", "--pose-topic", "needed with --bag");
       if (scene.needles.empty()) throw InputError(scene_path, "needle", "--bag drives a needle: the scene has none");

@@ -130,3 +130,95 @@ TEST(Hex8, DegenerateElementIsRejected) {
   LinearElasticMaterial m{1, 0.3, 1};
   EXPECT_THROW(hex8::computeReference(X, m), std::invalid_argument);
 }
+
+namespace {
+// A skewed, tapered hexahedron (no two faces parallel).
+hex8::Mat83 distortedCorners() {
+  hex8::Mat83 X = boxCorners({0, 0, 0}, {0.2, 0.1, 0.3});
+  const double d[8][3] = {{0.01, -0.005, 0.02}, {0.03, 0.01, -0.01}, {-0.02, 0.02, 0.0},  {0.0, -0.01, 0.015},
+                          {0.02, 0.0, -0.02},   {-0.01, 0.015, 0.03}, {0.015, -0.02, 0.01}, {-0.03, 0.005, -0.01}};
+  for (int a = 0; a < 8; ++a)
+    for (int k = 0; k < 3; ++k) X(a, k) += d[a][k];
+  return X;
+}
+const HexFormulation kFormulations[] = {HexFormulation::Trilinear, HexFormulation::Bbar,
+                                        HexFormulation::IncompatibleModes, HexFormulation::IncompatibleModesBbar};
+std::string name(HexFormulation f) { return std::to_string(static_cast<int>(f)); }
+}  // namespace
+
+// Every formulation (#37), on a distorted element, at a compressible and a nearly
+// incompressible nu: K0 symmetric, positive semi-definite, exactly six zero eigenvalues (no
+// spurious zero-energy mode from the condensed modes or the mean dilatation).
+TEST(Hex8, EveryFormulationHasExactlySixRigidModes) {
+  for (HexFormulation f : kFormulations)
+    for (double nu : {0.3, 0.4999}) {
+      SCOPED_TRACE("formulation " + name(f) + ", nu " + std::to_string(nu));
+      LinearElasticMaterial m{2.0e5, nu, 1000, f};
+      const auto ref = hex8::computeReference(distortedCorners(), m);
+      EXPECT_LT((ref.K0 - ref.K0.transpose()).norm(), 1e-12 * ref.K0.norm());
+      Eigen::SelfAdjointEigenSolver<hex8::Mat24> es(ref.K0);
+      const auto ev = es.eigenvalues();
+      // The smallest deformation mode's eigenvalue is ~mu h; lambda only enlarges the largest.
+      const double scale = m.lameMu() * 0.2;
+      int zeros = 0;
+      for (int i = 0; i < 24; ++i) {
+        EXPECT_GT(ev[i], -1e-9 * scale);
+        if (std::abs(ev[i]) < 1e-9 * scale) ++zeros;
+      }
+      EXPECT_EQ(zeros, 6);
+      EXPECT_GT(ev[6], 1e-3 * scale);
+    }
+}
+
+// The strain operator is the one the stiffness integrates: K0 = sum_q E_q^T D E_q det J_q at
+// the 2x2x2 Gauss points (for the modes: the condensed stiffness equals the energy of the
+// condensed strain), so stresses, SPR and the goal duals see the element's own strains.
+TEST(Hex8, StrainOperatorIsTheOneTheStiffnessIntegrates) {
+  const auto X = distortedCorners();
+  const double g = 1.0 / std::sqrt(3.0);
+  for (HexFormulation f : kFormulations)
+    for (double nu : {0.3, 0.499}) {
+      SCOPED_TRACE("formulation " + name(f) + ", nu " + std::to_string(nu));
+      LinearElasticMaterial m{2.0e5, nu, 1000, f};
+      const auto ref = hex8::computeReference(X, m);
+      hex8::Mat24 K = hex8::Mat24::Zero();
+      Eigen::Matrix<double, 1, 24> mean = Eigen::Matrix<double, 1, 24>::Zero();
+      for (int q = 0; q < 8; ++q) {
+        const Eigen::Vector3d xi(hex8::kCornerSigns[q][0] * g, hex8::kCornerSigns[q][1] * g, hex8::kCornerSigns[q][2] * g);
+        const double detJ = (X.transpose() * hex8::shapeGradNatural(xi)).determinant();
+        const auto E = hex8::strainOperator(X, ref, xi);
+        K += E.transpose() * m.elasticity() * E * detJ;
+        mean += E.topRows<3>().colwise().sum() * detJ;
+      }
+      EXPECT_LT((K - ref.K0).norm(), 1e-12 * ref.K0.norm());
+      // Every formulation keeps the element's volume change: the mean dilatation is the
+      // trilinear one (the modes' mean is zero; B-bar replaces the pointwise one by it).
+      EXPECT_LT((mean / ref.volume - ref.mean_dilatation).norm(), 1e-12 * ref.mean_dilatation.norm());
+      if (f == HexFormulation::Bbar) {  // the volume strain is the mean everywhere
+        const auto E = hex8::strainOperator(X, ref, Eigen::Vector3d(0.3, -0.6, 0.2));
+        EXPECT_LT((E.topRows<3>().colwise().sum() - ref.mean_dilatation).norm(), 1e-12 * ref.mean_dilatation.norm());
+      }
+    }
+}
+
+// Wilson's incompatible modes make a rectangular element exact in pure bending: one element
+// under the end moment of a linear bending stress bends as the beam does (u_y = -eps x^2 /
+// (2 h) ...), the trilinear one locks in shear (its bending energy is too high).
+TEST(Hex8, IncompatibleModesBendExactlyTrilinearLocks) {
+  const double L = 4, h = 1, t = 1;  // one 4 x 1 x 1 element, bending about z
+  const auto X = boxCorners({0, -h / 2, 0}, {L, h / 2, t});
+  const double kappa = 1e-3;  // curvature: u_x = -kappa x y
+  Eigen::Matrix<double, 24, 1> u;
+  for (int a = 0; a < 8; ++a) u.segment<3>(3 * a) << -kappa * X(a, 0) * X(a, 1), 0.5 * kappa * X(a, 0) * X(a, 0), 0;
+  const double E = 1000;
+  for (HexFormulation f : {HexFormulation::Trilinear, HexFormulation::IncompatibleModes}) {
+    LinearElasticMaterial m{E, 0.0, 1, f};
+    const auto ref = hex8::computeReference(X, m);
+    const double energy = 0.5 * u.dot(ref.K0 * u);
+    const double beam = 0.5 * E * (t * h * h * h / 12) * kappa * kappa * L;  // 1/2 E I kappa^2 L
+    if (f == HexFormulation::Trilinear)
+      EXPECT_GT(energy, 2.0 * beam);  // shear locking: (1 + (L/h)^2 / 2 ...) times too stiff
+    else
+      EXPECT_NEAR(energy, beam, 1e-10 * beam);
+  }
+}

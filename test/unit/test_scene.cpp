@@ -8,6 +8,7 @@
 #include <fstream>
 
 #include "needle_sim/core/error.hpp"
+#include "needle_sim/scene/scene_check.hpp"
 #include "needle_sim/scene/scene_keys.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/scene/scene_path.hpp"
@@ -294,4 +295,37 @@ TEST(Scene, ScenesByNameAreThePackages) {
   EXPECT_EQ(resolveScenePath("no_such_scene.yaml", share), "no_such_scene.yaml");  // the loader says so
   EXPECT_EQ(resolveScenePath("dbs_adaptive.yaml", ""), "dbs_adaptive.yaml");
   EXPECT_NO_THROW(loadScene(resolveScenePath("phantom_8x4x4", share)));
+}
+
+// The hexahedron formulation (#37): read by name, trilinear by default (the paper's); nu = 0.5
+// refused (lambda infinite); a trilinear element at nu >= 0.45 warned about (it locks), the
+// locking-free one or a lower nu not.
+TEST(Scene, ElementIsReadAndTrilinearNearIncompressibilityIsWarnedAbout) {
+  EXPECT_EQ(loadScene(kPhantom).tissue.material.element, HexFormulation::Trilinear);
+  const std::pair<std::string, HexFormulation> names[] = {{"trilinear", HexFormulation::Trilinear},
+                                                          {"bbar", HexFormulation::Bbar},
+                                                          {"incompatible_modes", HexFormulation::IncompatibleModes},
+                                                          {"incompatible_modes_bbar", HexFormulation::IncompatibleModesBbar}};
+  for (const auto& [name, f] : names) EXPECT_EQ(loadScene(kPhantom, {"tissue.element=" + name}).tissue.material.element, f);
+  try {
+    loadScene(kPhantom, {"tissue.element=q1p0"});
+    FAIL() << "element q1p0 accepted";
+  } catch (const InputError& e) {
+    EXPECT_EQ(e.key(), "tissue.element");
+    EXPECT_NE(std::string(e.what()).find("incompatible_modes_bbar"), std::string::npos) << e.what();
+  }
+  try {
+    loadScene(kPhantom, {"tissue.material.poisson=0.5"});
+    FAIL() << "poisson 0.5 accepted";
+  } catch (const InputError& e) {
+    EXPECT_EQ(e.key(), "tissue.material.poisson");
+  }
+  EXPECT_TRUE(
+      sceneWarnings(loadScene(kPhantom, {"tissue.element=incompatible_modes_bbar", "tissue.material.poisson=0.499"}))
+          .empty());
+  EXPECT_TRUE(sceneWarnings(loadScene(kPhantom, {"tissue.element=trilinear", "tissue.material.poisson=0.44"})).empty());
+  const auto w = sceneWarnings(loadScene(kPhantom, {"tissue.material.poisson=0.45"}));
+  ASSERT_EQ(w.size(), 1u);
+  EXPECT_NE(w[0].find("tissue.element: trilinear"), std::string::npos) << w[0];
+  EXPECT_NE(w[0].find("0.45"), std::string::npos) << w[0];
 }

@@ -43,6 +43,10 @@ struct TissueParameters {
                   "Poisson's ratio ν", true)
             .real("material.density", [](S& s) -> double& { return s.material.density; }, "kg/m^3", Range::positive(),
                   "ρ", true)
+            .choice("element", [](S& s) -> HexFormulation& { return s.material.element; },
+                    {"trilinear", "bbar", "incompatible_modes", "incompatible_modes_bbar"},
+                    "how the hexahedra integrate the material: full 2x2x2 Gauss, the mean volume strain (B-bar), "
+                    "nine condensed incompatible modes, or both (doc/method.md \"Element\")")
             .vector("gravity", [](S& s) -> Vec3& { return s.gravity; }, "m/s^2", "body load ρg")
             .vector("body_force", [](S& s) -> Vec3& { return s.body_force; }, "N/m^3", "body load per volume");
     return p;

@@ -78,15 +78,15 @@ bool fitLinear(const std::vector<Vec3>& pts, const std::vector<Stress>& vals, co
 struct GaussTable {
   std::array<Eigen::Matrix<double, 8, 3>, 8> grad;
   std::array<hex8::Vec8, 8> shape;
-  Eigen::Matrix<double, 8, 3> centroid_grad;
+  std::array<Vec3, 8> point;
   GaussTable() {
     const double g = 1.0 / std::sqrt(3.0);
     for (int q = 0; q < 8; ++q) {
       const Vec3 xi(hex8::kCornerSigns[q][0] * g, hex8::kCornerSigns[q][1] * g, hex8::kCornerSigns[q][2] * g);
       grad[q] = hex8::shapeGradNatural(xi);
       shape[q] = hex8::shape(xi);
+      point[q] = xi;
     }
-    centroid_grad = hex8::shapeGradNatural(Vec3::Zero());
   }
 };
 const GaussTable& gaussTable() {
@@ -120,13 +120,14 @@ SprEstimator::SprEstimator(const CorotationalHexModel& model) : model_(model) {
     if (done[k]) continue;
     done[k] = 1;
     const auto X = mesh.elementCorners(e);
+    const hex8::ElementReference& ref = model.reference(e);
     ShapeTables& t = shapes_[k];
-    const Mat3 Jc = X.transpose() * gt.centroid_grad;
-    t.centroid_B = hex8::strainDisplacement(gt.centroid_grad * Jc.inverse());
+    // The strain the element computes (its formulation's operator, hex8::strainOperator).
+    t.centroid_B = hex8::strainOperator(X, ref, Vec3::Zero());
     for (int q = 0; q < 8; ++q) {
       const Mat3 J = X.transpose() * gt.grad[q];
       t.gauss_detJ[q] = J.determinant();
-      t.gauss_B[q] = hex8::strainDisplacement(gt.grad[q] * J.inverse());
+      t.gauss_B[q] = hex8::strainOperator(X, ref, gt.point[q]);
     }
   }
 }
@@ -168,10 +169,7 @@ Eigen::Matrix<double, 24, 1> SprEstimator::corotatedDisplacement(const VecX& x, 
 
 Stress SprEstimator::elementStress(const VecX& x, int e, const Vec3& xi, const Mat3& R) const {
   const auto u = corotatedDisplacement(x, e, R);
-  const auto X = model_.mesh().elementCorners(e);
-  const auto Gn = hex8::shapeGradNatural(xi);
-  const Mat3 J = X.transpose() * Gn;
-  const auto B = hex8::strainDisplacement(Gn * J.inverse());
+  const auto B = hex8::strainOperator(model_.mesh().elementCorners(e), model_.reference(e), xi);
   const Stress local = model_.material().elasticity() * (B * u);
   return rotate(R, local);
 }

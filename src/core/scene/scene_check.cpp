@@ -1,6 +1,7 @@
 #include "needle_sim/scene/scene_check.hpp"
 
 #include <cmath>
+#include <cstdio>
 #include <regex>
 #include <set>
 
@@ -173,6 +174,19 @@ void checkScene(const Scene& s) {
                "no target named '" + s.adaptivity->goal_targets[i] + "' in targets");
   if (s.has_tissue && s.solver.mode == SolverSettings::Mode::Static && s.tissue.dirichlet.empty())
     r.fail("tissue.dirichlet", "static mode needs Dirichlet conditions that hold the body (none given)");
+}
+
+std::vector<std::string> sceneWarnings(const Scene& s) {
+  std::vector<std::string> w;
+  const LinearElasticMaterial& m = s.tissue.material;
+  if (s.has_tissue && m.element == HexFormulation::Trilinear && m.poisson >= kTrilinearLockingPoisson) {
+    char nu[32];
+    std::snprintf(nu, sizeof nu, "%g", m.poisson);
+    w.push_back(std::string(s.file.empty() ? "scene" : s.file) + ": tissue.element: trilinear at tissue.material.poisson " +
+                nu + " locks volumetrically (too stiff: 15 % on the paper's block at 0.45, 74 % at 0.4999); " +
+                "tissue.element: incompatible_modes_bbar does not (doc/method.md \"Tissue\")");
+  }
+  return w;
 }
 
 }  // namespace needle_sim
