@@ -17,7 +17,7 @@ struct LinearElasticMaterial {
   double young = 1.0;    // E [Pa]
   double poisson = 0.3;  // nu, in (-1, 0.5)
   double density = 1.0;  // rho [kg/m^3]
-  HexFormulation element = HexFormulation::Trilinear;  // how the hexahedra integrate it (#37)
+  HexFormulation element = HexFormulation::IncompatibleModesBbar;  // how the hexahedra integrate it (#37)
 
   double lameLambda() const { return young * poisson / ((1 + poisson) * (1 - 2 * poisson)); }
   double lameMu() const { return young / (2 * (1 + poisson)); }

@@ -46,7 +46,7 @@ struct TissueParameters {
             .choice("element", [](S& s) -> HexFormulation& { return s.material.element; },
                     {"trilinear", "bbar", "incompatible_modes", "incompatible_modes_bbar"},
                     "how the hexahedra integrate the material: full 2x2x2 Gauss, the mean volume strain (B-bar), "
-                    "nine condensed incompatible modes, or both (doc/method.md \"Element\")")
+                    "nine condensed incompatible modes, or both (doc/method.md \"Tissue\")")
             .vector("gravity", [](S& s) -> Vec3& { return s.gravity; }, "m/s^2", "body load ρg")
             .vector("body_force", [](S& s) -> Vec3& { return s.body_force; }, "N/m^3", "body load per volume");
     return p;
