@@ -374,24 +374,19 @@ def main():
     print(f"wrote {a.out} ({time.time() - t_start:.0f} s)", file=sys.stderr)
 
     # summary tables (Markdown, as in README.md)
-    print("| nu | tip u_z, n = " + ", ".join(str(n) for n in BOX_MESHES) +
-          " [m] | extrapolated [m] | error estimate [m] | observed order (coarser) |")
-    print("|---|---|---|---|---|")
-    for nu in NUS_BOX:
-        q = box[repr(nu)]["quantities"]["tip_uz"]
-        print(f"| {nu} | " + ", ".join(f"{v:.6e}" for v in q["values"]) +
-              f" | {q['extrapolated']:.7e} | {q['error_estimate']:.1e} | "
-              f"{q['order_observed']} ({q.get('order_observed_coarser')}) |")
-    print()
-    print("| nu | corner u_y, n = " + ", ".join(str(n) for n in COOK_MESHES) +
-          " | extrapolated | error estimate | observed order (coarser) |")
-    print("|---|---|---|---|---|")
-    for nu in NUS_COOK:
-        q = cook[repr(nu)]["quantities"]["corner_uy"]
-        print(f"| {nu} | " + ", ".join(f"{v:.6f}" for v in q["values"]) +
-              f" | {q['extrapolated']:.5f} | {q['error_estimate']:.1e} | "
-              f"{q['order_observed']} ({q.get('order_observed_coarser')}) |")
-    print()
+    def table(results, nus, quantity, meshes, label, fmt, digits):
+        print(f"| nu | {label}, n = " + ", ".join(str(n) for n in meshes) +
+              " | extrapolated | error estimate | observed order (coarser) |")
+        print("|---|---|---|---|---|")
+        for nu in nus:
+            q = results[repr(nu)]["quantities"][quantity]
+            print(f"| {nu} | " + ", ".join(format(v, fmt) for v in q["values"]) +
+                  f" | {q['extrapolated']:.{digits}} | {q['error_estimate']:.1e} | "
+                  f"{q['order_observed']} ({q.get('order_observed_coarser')}) |")
+        print()
+
+    table(box, NUS_BOX, "tip_uz", BOX_MESHES, "tip u_z [m]", ".6e", "7e")
+    table(cook, NUS_COOK, "corner_uy", COOK_MESHES, "corner u_y", ".6f", "5f")
     print("| nu | displacement-Q2 tip u_z, n = ... [m] | / mixed extrapolated |")
     print("|---|---|---|")
     for nu, meshes in DISP_MESHES.items():
