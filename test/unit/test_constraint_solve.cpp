@@ -170,10 +170,10 @@ TEST(ConstraintSolve, BothSolversAgreeWhereBothConverge) {
 
 // Soft tissue couples the shaft points strongly (the compliance of a neighbour is 97 % of a
 // point's own): Gauss-Seidel stops at its sweep limit far from the answer, the block solver
-// converges in a few outer iterations to a point satisfying every law. With a puncture block
-// in the same problem (a second needle pressing on the surface) the outer iteration between
-// the axial rows and that block converges linearly at the coupling's rate: many more
-// iterations, still inside the limit and to the same laws.
+// converges in a few outer iterations to a point satisfying every law, with a puncture block
+// in the same problem (a second needle pressing on the surface) too: its normal row is in the
+// box QP with the axial rows (solved apart, the two converged linearly at the coupling's rate,
+// 134-136 outer iterations here).
 TEST(ConstraintSolve, BlockActiveSetConvergesWhereGaussSeidelCrawls) {
   for (bool puncture : {false, true})
     for (unsigned seed : {4u, 5u}) {
@@ -187,7 +187,7 @@ TEST(ConstraintSolve, BlockActiveSetConvergesWhereGaussSeidelCrawls) {
                   "(residual %.1e, error %.1e N)\n",
                   puncture, seed, rb.iterations, rb.residual, eb, rg.iterations, rg.residual, eg);
       EXPECT_TRUE(rb.converged);
-      EXPECT_LT(rb.iterations, puncture ? 200 : 10);
+      EXPECT_LT(rb.iterations, 10);
       EXPECT_FALSE(rg.converged);
       expectKkt(kkt(p, lb), 1e-9);
       expectKkt(kkt(p, ref), 1e-12);
@@ -275,7 +275,9 @@ TEST(ConstraintSolve, GripPressureAddsItsFrictionPerMetre) {
 }
 
 // Soft tissue (E = 6 kPa, brain-like): the default block solver converges at every step of the
-// insertion where the projected Gauss-Seidel sweeps do not (the failure #21 reported).
+// insertion where the projected Gauss-Seidel sweeps do not (the failure #21 reported). On the
+// locking-free element every shaft point slips and the outer fixed point contracts at 0.98 an
+// iteration: without its Anderson acceleration 86 of the 460 steps stopped at the limit.
 TEST(ConstraintSolve, SoftTissueInsertionConvergesAtEveryStep) {
 #ifdef NEEDLE_SIM_SANITIZED
   GTEST_SKIP() << "a 4,600-step insertion: test_interaction runs the same solver path under the sanitizers";

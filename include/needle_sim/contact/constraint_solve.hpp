@@ -5,13 +5,12 @@
 // The bilateral rows (lateral rows of tip and shaft points) are eliminated exactly
 // (ReducedContactProblem); two solvers work on what is left (doc/method.md, "Constraint
 // solve"):
-//  - blockActiveSet (default): the axial rows, a box-constrained QP once their Coulomb bounds
-//    are frozen, are solved exactly by a primal-dual active set method; each puncture block
-//    (normal + tangential Coulomb cone) is solved exactly in 3x3; an outer fixed point updates
-//    the bounds from the lateral forces and the blocks from each other. Shaft and tip rows
-//    alone converge in a few outer iterations even in soft tissue; a puncture block strongly
-//    coupled to many shaft rows (a second needle pressing on the surface) converges linearly
-//    at the coupling's rate, as block Gauss-Seidel does (test_constraint_solve).
+//  - blockActiveSet (default): the axial rows and the puncture blocks' normal rows, a
+//    box-constrained QP once the Coulomb bounds are frozen, are solved exactly by a primal
+//    active set method; each puncture block's tangential disc is solved exactly; an outer
+//    fixed point, Anderson-accelerated, updates the bounds from the lateral forces. It
+//    converges in a few outer iterations even in soft tissue, with a second needle pressing
+//    on the surface too (test_constraint_solve).
 //  - projectedGaussSeidel: the paper's one-row-at-a-time iteration, kept for comparison; it
 //    crawls when soft tissue couples many shaft points strongly.
 #include <vector>
