@@ -155,9 +155,14 @@ TEST(Prediction, AtTheLiveStepItIsTheLiveRunOfThePlan) {
   EXPECT_LT(p.samples.back().base_forces[0].x(), 0);  // the tissue pushes the needle back onto its holder
 }
 
+// On the adaptive scene with the paper's element. On the default one the difference is 1.40 %
+// at a 10 ms step and 1.74 % at 5 ms: not the step's own error (it would halve) but the
+// adaptivity's schedule, which counts steps (adaptivity.every_steps), so a prediction at
+// another step changes its mesh at other times; the step's error on the default element is
+// CoarseStepOnAFixedMeshUsesItsOwnCompliance's.
 TEST(Prediction, CoarseStepAgreesWithTheLiveStep) {
   setBlasThreads(1);
-  Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml"));
+  Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml", {"tissue.element=trilinear"}));
   sim.setTarget("target", Vec3(0.012, 0.01, 0.0115));
   for (int k = 0; k < 200; ++k) sim.step();
   const Prediction fine = predictInsertion(sim, straightPlan(sim, 0.012, 1.2, 1.5, 0.0));
