@@ -235,7 +235,8 @@ TEST(DbsCoarse, BrainShiftMovesTheLeftStnByTheTargetShiftInsideTheSkull) {
   // not the tissue around it (or the other way round) would change it by millimetres.
   std::cout << "left STN " << r.stn_depth_rest * 1e3 << " mm below the brain's surface at rest, "
             << r.stn_depth_after_shift * 1e3 << " mm after the shift of " << u.transpose() * 1e3 << " mm (load scale "
-            << r.shift.load_scale << ")\n";
+            << r.shift.load_scale << "); skull: " << r.shift.contacts << " vertices, crossed by "
+            << r.shift.max_penetration * 1e6 << " um at most\n";
   EXPECT_GT(r.stn_depth_rest, 0.005);
   EXPECT_NEAR(r.stn_depth_after_shift, r.stn_depth_rest, 0.15 * kTargetShift)
       << "depth at rest " << r.stn_depth_rest << " m";
@@ -275,6 +276,8 @@ TEST(DbsCoarse, HolderForceGrowsWithDepthAndEveryConstraintSolveConverges) {
   const CoarseRun::Step& last = r.steps.back();
   EXPECT_EQ(last.state, InsertionState::Inserted);
   EXPECT_GT(last.path_length, 0.8 * 0.010 * (kLastStep - puncture) * sc.dt);
+  std::cout << "cut path " << last.path_length * 1e3 << " mm of the " << 0.010 * (kLastStep - puncture) * sc.dt * 1e3
+            << " mm advanced since the puncture (step " << puncture << ")\n";
   // Mean axial force (pushing in: -x on the holder) over depth bands of one shaft spacing
   // each, from 8 mm to 40 mm: it grows from band to band.
   std::vector<double> sum(4, 0), n(4, 0);

@@ -24,6 +24,8 @@ holder_force_<trajectory>.png, stn_bound_<trajectory>.png} and one run directory
 configuration; --sensitivity adds DIR/sensitivity.{csv,md,png}: the final electrode-STN
 distance and the STN's largest motion on the re-planned trajectory (adaptive mesh) against
 the grip pressure and the friction coefficient. --reuse keeps runs whose summary.json says ok.
+--write-doc writes study.md and sensitivity.md into doc/benchmarks.md's blocks and copies the
+figures it shows into doc/.
 """
 import argparse
 import concurrent.futures
@@ -31,6 +33,7 @@ import csv
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 
@@ -41,6 +44,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from .. import paths
 from ..run_outputs import axial_force_label
+from . import runs
 from .runs import SCENES, slug, write_csv
 
 TARGET, ELECTRODE, CANNULA = "STN_L", "electrode", "cannula"
@@ -113,6 +117,8 @@ def main():
     ap.add_argument("--reference", action="store_true", help="also the uniform 4 mm mesh, the reference (about 2 h)")
     ap.add_argument("--sensitivity", action="store_true", help="the final distance against grip pressure and friction")
     ap.add_argument("--jobs", type=int, default=1, help="runs at a time (each uses one core)")
+    ap.add_argument("--write-doc", action="store_true",
+                    help="write the tables into doc/benchmarks.md and the figures it shows into doc/")
     ARGS = args = ap.parse_args()
     if not os.access(args.tool, os.X_OK):
         sys.exit(f"dbs_study: no needle_sim tool at {args.tool} (build first: bash scripts/test.sh)")
@@ -174,6 +180,27 @@ def main():
     plots(args.out, results, meshes, args.reference)
     if args.sensitivity:
         sensitivity(args)
+    if args.write_doc:
+        write_doc(args)
+
+
+# The figures doc/benchmarks.md shows, from the study's folder.
+DOC_FIGURES = {"holder_force_replanned.png": "dbs_holder_force.png", "stn_motion_planned.png": "dbs_stn_motion_planned.png",
+               "distance_replanned.png": "dbs_distance_replanned.png", "stn_bound_replanned.png": "dbs_stn_bound.png",
+               "sensitivity.png": "dbs_sensitivity.png"}
+
+
+def write_doc(args):
+    """study.md (and sensitivity.md) into doc/benchmarks.md's blocks, the figures into doc/."""
+    command = "scripts/dbs_study.py " + " ".join(a for a in sys.argv[1:] if a not in ("--reuse",))
+    with open(os.path.join(args.out, "study.md")) as f:
+        runs.write_doc_block("benchmarks.md", "dbs_study", f.read(), command)
+    if args.sensitivity:
+        with open(os.path.join(args.out, "sensitivity.md")) as f:
+            runs.write_doc_block("benchmarks.md", "dbs_sensitivity", f.read(), command)
+    for src, dst in DOC_FIGURES.items():
+        if os.path.exists(os.path.join(args.out, src)):
+            shutil.copyfile(os.path.join(args.out, src), os.path.join(paths.share_dir(), "doc", dst))
 
 
 def fmt(v):

@@ -21,12 +21,8 @@ The error is (u_h - u_ref) / u_ref: negative when the element is stiffer than th
 the table goes into doc/verification.md between its '<!-- locking: table -->' markers, with
 the date, the commit and this command.
 """
-import datetime
 import json
 import os
-import re
-import subprocess
-import sys
 
 from .. import paths
 from . import runs
@@ -40,7 +36,6 @@ COOK_SCALE = 1e-4  # the scene's load is the reference's times this (keeps the m
 CANTILEVER_NU = [0.3, 0.499, 0.4999]
 CANTILEVER_MESHES = [(10, 1, 1), (20, 2, 2), (40, 4, 4)]
 CANTILEVER_SCALE = 4e-3  # P L^3 / 3 E I of cantilever_hex8.yaml
-BLOCK = re.compile(r"(<!-- locking: table -->\n)(.*?)(<!-- end locking -->)", re.S)
 
 
 def reference(path=None):
@@ -139,36 +134,13 @@ def markdown(rows):
     return "\n".join(out)
 
 
-def write_doc(md, command):
-    doc = os.path.join(paths.share_dir(), "doc", "verification.md")
-    text = open(doc, encoding="utf-8").read()
-    if not BLOCK.search(text):
-        sys.exit(f"{doc}: no '<!-- locking: table -->' ... '<!-- end locking -->' block")
-    commit = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=paths.share_dir(),
-                            stdout=subprocess.PIPE, text=True).stdout.strip()
-    head = f"Made on {datetime.date.today().isoformat()} at {commit} by `{command}`.\n\n"
-    text = BLOCK.sub(lambda m: m.group(1) + head + md + m.group(3), text)
-    with open(doc, "w", encoding="utf-8") as f:
-        f.write(text)
-
-
 def main():
-    import argparse
+    def extra(ap):
+        ap.add_argument("--reference", default=None, help="test/data/locking_reference.json")
+        ap.add_argument("--write-doc", action="store_true", help="write the table into doc/verification.md")
 
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default=paths.results_dir("locking_benchmark"))
-    ap.add_argument("--tool", default=paths.tool())
-    ap.add_argument("--reuse", action="store_true", help="keep runs whose summary.json says ok")
-    ap.add_argument("--reference", default=None, help="test/data/locking_reference.json")
-    ap.add_argument("--write-doc", action="store_true", help="write the table into doc/verification.md")
-    a = ap.parse_args()
-    os.makedirs(a.out, exist_ok=True)
+    a = runs.parse_args(__doc__, "locking_benchmark", extra)
     rows = table(run(a.tool, a.out, a.reuse), reference(a.reference))
-    runs.write_csv(os.path.join(a.out, "table.csv"), rows)
-    md = markdown(rows)
-    with open(os.path.join(a.out, "table.md"), "w") as f:
-        f.write(md)
-    print(md)
-    if a.write_doc:
-        write_doc(md, "python3 scripts/locking_benchmark.py --write-doc")
+    runs.publish_table(a.out, rows, markdown(rows), a.write_doc, "verification.md", "locking",
+                       "python3 scripts/locking_benchmark.py --write-doc")
     return 0

@@ -2,8 +2,10 @@
 whose summary.json says ok) and load their summaries and time series."""
 import argparse
 import csv
+import datetime
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -12,12 +14,15 @@ from .. import paths
 SCENES = os.path.join(paths.share_dir(), "config", "scenes")
 
 
-def parse_args(doc, name):
-    """--out (results/<name>), --tool, --reuse; checks the tool and makes the output folder."""
+def parse_args(doc, name, extra=None):
+    """--out (results/<name>), --tool, --reuse and what `extra(parser)` adds; checks the tool and
+    makes the output folder."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=paths.results_dir(name))
     ap.add_argument("--tool", default=paths.tool())
     ap.add_argument("--reuse", action="store_true", help="keep runs whose summary.json says ok")
+    if extra:
+        extra(ap)
     args = ap.parse_args()
     if not os.access(args.tool, os.X_OK):
         sys.exit(f"{name}: no needle_sim tool at {args.tool} (build first: bash scripts/test.sh)")
@@ -57,3 +62,31 @@ def write_csv(path, table):
         w = csv.DictWriter(f, fieldnames=list(table[0].keys()))
         w.writeheader()
         w.writerows(table)
+
+
+def write_doc_block(doc, marker, md, command):
+    """Replaces what is between '<!-- MARKER: table -->' and '<!-- end MARKER -->' in doc/DOC with
+    a line naming the date, the commit and `command`, then `md`: figures in the docs are written
+    by the study that measured them, never by hand."""
+    path = os.path.join(paths.share_dir(), "doc", doc)
+    text = open(path, encoding="utf-8").read()
+    block = re.compile(r"(<!-- %s: table -->\n)(.*?)(<!-- end %s -->)" % (re.escape(marker), re.escape(marker)), re.S)
+    if not block.search(text):
+        sys.exit(f"{path}: no '<!-- {marker}: table -->' ... '<!-- end {marker} -->' block")
+    commit = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=paths.share_dir(),
+                            stdout=subprocess.PIPE, text=True).stdout.strip()
+    head = f"Made on {datetime.date.today().isoformat()} at {commit} by `{command}`.\n\n"
+    text = block.sub(lambda m: m.group(1) + head + md + m.group(3), text)
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(text)
+
+
+def publish_table(out, rows, md, write_doc, doc, marker, command):
+    """A study's table: table.csv and table.md in `out`, printed, and with `write_doc` into the
+    doc's block (write_doc_block)."""
+    write_csv(os.path.join(out, "table.csv"), rows)
+    with open(os.path.join(out, "table.md"), "w") as f:
+        f.write(md)
+    print(md)
+    if write_doc:
+        write_doc_block(doc, marker, md, command)
