@@ -298,8 +298,8 @@ TEST(Scene, ScenesByNameAreThePackages) {
 }
 
 // The hexahedron formulation (#37): read by name, the locking-free one by default; nu = 0.5
-// refused (lambda infinite); a trilinear element at nu >= 0.45 warned about (it locks), the
-// locking-free one or a lower nu not.
+// refused (lambda infinite); a trilinear element at nu >= 0.45 warned about (it locks), and the
+// incompatible modes alone at nu >= 0.499; the locking-free one or a lower nu not.
 TEST(Scene, ElementIsReadAndTrilinearNearIncompressibilityIsWarnedAbout) {
   EXPECT_EQ(loadScene(kPhantom).tissue.material.element, HexFormulation::IncompatibleModesBbar);
   const std::pair<std::string, HexFormulation> names[] = {{"trilinear", HexFormulation::Trilinear},
@@ -326,4 +326,9 @@ TEST(Scene, ElementIsReadAndTrilinearNearIncompressibilityIsWarnedAbout) {
   ASSERT_EQ(w.size(), 1u);
   EXPECT_NE(w[0].find("tissue.element: trilinear"), std::string::npos) << w[0];
   EXPECT_NE(w[0].find("0.45"), std::string::npos) << w[0];
+  // The incompatible modes alone lock mildly from 0.499 (10 % on the block's 8x4x4).
+  EXPECT_TRUE(sceneWarnings(loadScene(kPhantom, {"tissue.element=incompatible_modes", "tissue.material.poisson=0.49"})).empty());
+  const auto im = sceneWarnings(loadScene(kPhantom, {"tissue.element=incompatible_modes", "tissue.material.poisson=0.499"}));
+  ASSERT_EQ(im.size(), 1u);
+  EXPECT_NE(im[0].find("tissue.element: incompatible_modes at"), std::string::npos) << im[0];
 }

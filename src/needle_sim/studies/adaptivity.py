@@ -10,10 +10,12 @@ Sample run (about 4 minutes on the 2-core machine, most of it the 32x16x16 refer
     scripts/adaptivity_study.py --out results/adaptivity_study
 
 writes results/adaptivity_study/{study.csv, study.md, runtime_vs_error.png} and one run
-directory per configuration (kept: --reuse skips runs whose summary.json says ok).
+directory per configuration (kept: --reuse skips runs whose summary.json says ok); with
+--write-doc the table goes into doc/benchmarks.md's block and the figure into doc/.
 """
 import math
 import os
+import shutil
 
 import matplotlib
 
@@ -21,7 +23,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from ..run_outputs import names
-from .runs import SCENES, parse_args, run_all, write_csv
+from .. import paths
+from .runs import SCENES, parse_args, run_all, write_csv, write_doc_block
 
 
 # name, scene file, overrides
@@ -45,7 +48,9 @@ def probe_series(summary, rows):
 
 
 def main():
-    args = parse_args(__doc__, "adaptivity_study")
+    args = parse_args(__doc__, "adaptivity_study",
+                      lambda ap: ap.add_argument("--write-doc", action="store_true",
+                                                 help="write the table into doc/benchmarks.md and the figure into doc/"))
 
     results = {}
     for name, (summary, _, rows) in run_all(args.tool, SCENES, args.out, [(n, sc, [a for x in sets for a in ("--set", x)])
@@ -109,6 +114,11 @@ def main():
     png = os.path.join(args.out, "runtime_vs_error.png")
     fig.savefig(png, dpi=120)
     print("wrote", png)
+    if args.write_doc:
+        with open(os.path.join(args.out, "study.md")) as f:
+            write_doc_block("benchmarks.md", "adaptivity_study", f.read(),
+                            "scripts/adaptivity_study.py --out results/adaptivity_study --write-doc")
+        shutil.copyfile(png, os.path.join(paths.share_dir(), "doc", "adaptivity_runtime_vs_error.png"))
 
 
 if __name__ == "__main__":
