@@ -43,6 +43,7 @@ struct BrainShiftResult {
   int load_solves = 0;              // static solves (load steps, then one controlled solve)
   int newton_iterations = 0;
   int multiplier_updates = 0;
+  int restarts = 0;                 // first load steps tried again from rest at 1/8 of the load
   int factorizations = 0;
   double factor_ms = 0, solve_ms = 0;
   int passes = 0;                   // solve + adapt passes (1 without adaptivity)

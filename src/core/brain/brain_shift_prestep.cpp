@@ -82,6 +82,7 @@ BrainShiftResult runBrainShiftPreStep(const PreStepScene& scene, PreStepTissue& 
     total.factorizations = coarse.factorizations;
     total.load_solves = coarse.load_solves;
     total.multiplier_updates = coarse.multiplier_updates;
+    total.restarts = coarse.restarts;
     total.factor_ms = coarse.factor_ms;
     total.solve_ms = coarse.solve_ms;
   }
@@ -107,12 +108,14 @@ BrainShiftResult runBrainShiftPreStep(const PreStepScene& scene, PreStepTissue& 
     const int iterations = total.newton_iterations + r.newton_iterations;
     const int factorizations = total.factorizations + r.factorizations;
     const int solves = total.load_solves + r.load_solves, updates = total.multiplier_updates + r.multiplier_updates;
+    const int restarts = total.restarts + r.restarts;
     const double fms = total.factor_ms + r.factor_ms, sms = total.solve_ms + r.solve_ms;
     total = r;
     total.newton_iterations = iterations;
     total.factorizations = factorizations;
     total.load_solves = solves;
     total.multiplier_updates = updates;
+    total.restarts = restarts;
     total.factor_ms = fms;
     total.solve_ms = sms;
     total.passes = pass;

@@ -406,6 +406,7 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                         {"load_solves", bs.load_solves},
                         {"newton_iterations", bs.newton_iterations},
                         {"multiplier_updates", bs.multiplier_updates},
+                        {"restarts", bs.restarts},
                         {"factorizations", bs.factorizations},
                         {"skull_contacts", bs.contacts},
                         {"skull_max_penetration", bs.max_penetration},
