@@ -199,8 +199,12 @@ TEST_F(GuardSafety, ReconfigureRefusesBadLimitsWholeAndKeepsTheOldOnes) {
   srv.request.config.doubles = {a, b};
   ASSERT_TRUE(ros::service::call("needle_sim/set_parameters", srv));
   for (const auto& x : srv.response.config.doubles) {
-    if (x.name == "max_speed") EXPECT_EQ(x.value, 0.05);
-    if (x.name == "max_angular_speed_inserted") EXPECT_EQ(x.value, 0.1);
+    if (x.name == "max_speed") {
+      EXPECT_EQ(x.value, 0.05);
+    }
+    if (x.name == "max_angular_speed_inserted") {
+      EXPECT_EQ(x.value, 0.1);
+    }
   }
   // Diagnostics count the refusals (1 Hz of simulated time).
   EXPECT_TRUE(waitFor([&] { return n.diagValue("simulation", "reconfigure_refused") == "7"; }, 10.0))

@@ -546,8 +546,9 @@ TEST(CommandGuard, LimitsAboveTheirCeilingOrNotFiniteAreRefusedWhole) {
       ADD_FAILURE() << "max_speed " << v << " was taken";
     } catch (const InputError& e) {
       EXPECT_EQ(e.key(), "max_speed") << v;  // the core names limits bare; the node adds "~"
-      if (std::isfinite(v) && v > 0.1)
+      if (std::isfinite(v) && v > 0.1) {
         EXPECT_NE(std::string(e.what()).find("max_speed_ceiling = 0.1 m/s"), std::string::npos) << e.what();
+      }
     }
     EXPECT_DOUBLE_EQ(g.limits().max_speed, 0.05) << v;
     EXPECT_DOUBLE_EQ(g.limits().max_future, 0.01) << v;
@@ -665,7 +666,9 @@ TEST(TipSpeed, TheTipMovesWithTheBaseInFreeSpaceAndPredictionAndLiveRunAgree) {
     meter.observe(live);
     // The meter's figure is the tip's displacement over the step.
     ASSERT_NEAR(meter.speed(0), (live.needle(0).tipPosition() - before).norm() / sc.dt, 1e-12);
-    if (k >= 50 && k <= 250) EXPECT_NEAR(meter.speed(0), 0.01, 1e-4) << "step " << k << ": in free space";
+    if (k >= 50 && k <= 250) {
+      EXPECT_NEAR(meter.speed(0), 0.01, 1e-4) << "step " << k << ": in free space";
+    }
     if (meter.speed(0) > largest) largest = meter.speed(0), at = live.time();
   }
   EXPECT_DOUBLE_EQ(meter.largest(0), largest);

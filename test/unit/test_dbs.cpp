@@ -294,7 +294,9 @@ TEST(DbsCoarse, HolderForceGrowsWithDepthAndEveryConstraintSolveConverges) {
     }
   ASSERT_GT(puncture, 0) << "the cannula never went in";
   for (const auto& s : r.steps)
-    if (s.step >= puncture) ASSERT_LE(s.path_length, 0.010 * (s.step - puncture + 1) * sc.dt + 1e-3) << "step " << s.step;
+    if (s.step >= puncture) {
+      ASSERT_LE(s.path_length, 0.010 * (s.step - puncture + 1) * sc.dt + 1e-3) << "step " << s.step;
+    }
   const CoarseRun::Step& last = r.steps.back();
   EXPECT_EQ(last.state, InsertionState::Inserted);
   EXPECT_GT(last.path_length, 0.8 * 0.010 * (kLastStep - puncture) * sc.dt);
