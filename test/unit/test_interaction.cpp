@@ -7,6 +7,7 @@
 #include <map>
 
 #include "needle_sim/contact/shaft_constraint.hpp"
+#include "needle_sim/contact/tissue_surface.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
@@ -231,6 +232,57 @@ TEST(Interaction, PunctureHappensAtTheThreshold) {
   EXPECT_LT(before, threshold);
   EXPECT_LE(fp - threshold, fp - before);  // within one step's increment
   EXPECT_NE(find(sim, ConstraintKind::Tip), nullptr);
+}
+
+// A soft tissue pressed at a surface node dents into a cone of facets; the contact normal is
+// the smoothed one (tissue_surface.hpp), so the tip punctures where the needle aims. With the
+// facet normals, 1 um off the node the tip was pushed 0.2-0.5 mm sideways before it punctured
+// (0.47 mm at this tissue on the default element).
+TEST(Interaction, ASoftTissueIsPuncturedWhereTheNeedleAimsAtANode) {
+  for (const Vec3& off : {Vec3(0, 0, 1e-6), Vec3(0, -1e-6, 2e-6), Vec3(0, 4e-4, -3e-4)}) {
+    const Vec3 base = Vec3(-0.035, 0.01, 0.01) + off;
+    char pos[120];
+    std::snprintf(pos, sizeof pos, "needle.base.position=[%.17g,%.17g,%.17g]", base[0], base[1], base[2]);
+    Simulation sim(phantom({"tissue.material.young=6000", pos, "time.duration=0.9"}));
+    for (long k = 0; k < sim.scene().numSteps() && sim.interaction()->state(0) != InsertionState::Punctured; ++k)
+      sim.step();
+    ASSERT_EQ(sim.interaction()->state(0), InsertionState::Punctured) << off.transpose();
+    const Vec3 entry = sim.interaction()->cutPath(0).front();  // rest coordinates
+    EXPECT_NEAR(entry[0], 0.0, 1e-12);
+    EXPECT_NEAR((entry - Vec3(0, 0.01, 0.01) - off).norm(), 0.0, 2e-6) << "aimed " << off.transpose() * 1e3
+                                                                        << " mm, punctured " << entry.transpose() * 1e3;
+  }
+}
+
+// The smoothed normal on a dented box face: along the dent's axis at its node, turning
+// continuously off it (not by the facets' slope); a box's edge stays sharp.
+TEST(TissueSurfaceNormal, IsTheDentsAxisAtItsNodeAndTheFaceNormalAtAnEdge) {
+  const HexMesh mesh = HexMesh::box(Vec3(0, 0, 0), Vec3(0.02, 0.02, 0.02), Vec3i(2, 2, 2));
+  const TissueSurface surface(mesh);
+  VecX x(3 * mesh.numNodes());
+  int centre = -1;
+  for (int i = 0; i < mesh.numNodes(); ++i) {
+    x.segment<3>(3 * i) = mesh.node(i);
+    if ((mesh.node(i) - Vec3(0, 0.01, 0.01)).norm() < 1e-12) centre = i;
+  }
+  ASSERT_GE(centre, 0);
+  x[3 * centre] += 0.002;  // a dent 2 mm deep in a 10 mm cell: facets turned by 11 degrees
+  auto normalAt = [&](double y, double z) {
+    SurfaceHit hit;
+    EXPECT_TRUE(surface.firstEntry(x, Vec3(-0.01, y, z), Vec3(0.01, y, z), hit));
+    return hit.normal;
+  };
+  EXPECT_NEAR((normalAt(0.01, 0.01) - Vec3(-1, 0, 0)).norm(), 0.0, 1e-12);
+  // 1 um off the node: turned by about 1e-6 / 0.01 of the dent's slope, not by 11 degrees.
+  for (const auto& [y, z] : {std::pair{0.01, 0.010001}, {0.009999, 0.01}, {0.010001, 0.009999}})
+    EXPECT_LT((normalAt(y, z) - Vec3(-1, 0, 0)).norm(), 1e-4) << y << " " << z;
+  // Off the node, it tilts towards the dent's axis (outward and inward of the dent).
+  const Vec3 n = normalAt(0.01, 0.015);
+  EXPECT_LT(n[2], -0.01);
+  EXPECT_NEAR(n.norm(), 1.0, 1e-12);
+  // Near a box's edge (the face x = 0 meets y = 0), the face's own normal.
+  x[3 * centre] -= 0.002;
+  EXPECT_NEAR((normalAt(1e-6, 0.005) - Vec3(-1, 0, 0)).norm(), 0.0, 1e-12);
 }
 
 namespace {

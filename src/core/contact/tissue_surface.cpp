@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <limits>
+#include <unordered_map>
 
 #include "needle_sim/fem/hex8.hpp"
 
@@ -26,9 +27,43 @@ bool enters(const Vec3& a, const Vec3& d, const Vec3& p0, const Vec3& p1, const 
   t = e2.dot(qv) / det;
   return t >= -1e-12 && t <= 1 + 1e-12;
 }
+
+// Outward normal of quad face P at its corner k (its edges to the neighbouring corners).
+Vec3 cornerNormal(const Vec3 P[4], int k) { return (P[(k + 1) % 4] - P[k]).cross(P[(k + 3) % 4] - P[k]); }
 }  // namespace
 
-TissueSurface::TissueSurface(const HexMesh& mesh) : mesh_(mesh), faces_(mesh.boundaryFaces()) {}
+TissueSurface::TissueSurface(const HexMesh& mesh) : mesh_(mesh), faces_(mesh.boundaryFaces()) {
+  const int nf = static_cast<int>(faces_.size());
+  std::vector<Vec3> rest_normal(nf);
+  std::unordered_map<int, std::vector<int>> corners_at;  // node -> face corners 4 f + k
+  for (int f = 0; f < nf; ++f) {
+    const auto& q = faces_[f].nodes;
+    const Vec3 P[4] = {mesh.node(q[0]), mesh.node(q[1]), mesh.node(q[2]), mesh.node(q[3])};
+    rest_normal[f] = (P[2] - P[0]).cross(P[3] - P[1]).normalized();
+    for (int k = 0; k < 4; ++k) corners_at[q[k]].push_back(4 * f + k);
+  }
+  const double crease = 0.5;  // cos 60 degrees
+  corner_fan_.resize(4 * nf);
+  for (int f = 0; f < nf; ++f)
+    for (int k = 0; k < 4; ++k)
+      for (int c : corners_at[faces_[f].nodes[k]])
+        if (rest_normal[c / 4].dot(rest_normal[f]) > crease) corner_fan_[4 * f + k].push_back(c);
+}
+
+Vec3 TissueSurface::smoothedNormal(const VecX& x, int f, const hex8::Vec8& w) const {
+  const auto& face = hex8::kFaces[faces_[f].face];
+  Vec3 n = Vec3::Zero();
+  for (int k = 0; k < 4; ++k) {
+    Vec3 nk = Vec3::Zero();
+    for (int c : corner_fan_[4 * f + k]) {
+      const auto& q = faces_[c / 4].nodes;
+      const Vec3 P[4] = {node3(x, q[0]), node3(x, q[1]), node3(x, q[2]), node3(x, q[3])};
+      nk += cornerNormal(P, c % 4).normalized();
+    }
+    n += w[face[k]] * nk.normalized();
+  }
+  return n.normalized();
+}
 
 TissueSurface::TissueSurface(const HexMesh& mesh, const EmbeddedSurface& organ) : mesh_(mesh), organ_(&organ) {
   const TriangleMesh& m = organ.rest();
@@ -71,6 +106,7 @@ bool TissueSurface::firstEntry(const VecX& x, const Vec3& a, const Vec3& b, Surf
   if (organ_) return firstEntryOrgan(x, a, b, hit);
   const Vec3 d = b - a;
   double best = std::numeric_limits<double>::infinity();
+  int best_face = -1;
   for (const auto& f : faces_) {
     const Vec3 P[4] = {node3(x, f.nodes[0]), node3(x, f.nodes[1]), node3(x, f.nodes[2]), node3(x, f.nodes[3])};
     static const int tri[2][3] = {{0, 1, 2}, {0, 2, 3}};
@@ -94,8 +130,10 @@ bool TissueSurface::firstEntry(const VecX& x, const Vec3& a, const Vec3& b, Surf
       hit.material.xi = xi;
       hit.material.weights = hex8::shape(xi);
       hit.material.rest = mesh_.elementCorners(f.element).transpose() * hit.material.weights;
+      best_face = static_cast<int>(&f - faces_.data());
     }
   }
+  if (best_face >= 0) hit.normal = smoothedNormal(x, best_face, hit.material.weights);
   return std::isfinite(best);
 }
 
