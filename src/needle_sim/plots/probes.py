@@ -11,7 +11,7 @@ Sample run (after the three shipped insertion scenes have been run):
         results/phantom_insertion_16x8x8 results/phantom_insertion_32x16x16 --out results/plots
 
 It writes one PNG per probe (displacement magnitude, and its component along the needle axis,
-against step, one curve per run, labelled with the run's DOFs) and two overview PNGs for the
+against step, one curve per run, labelled with the run's scene and largest DOFs) and two overview PNGs for the
 finest run: all probes along the path, all probes on the radial line.
 """
 import argparse
@@ -43,7 +43,13 @@ def load(run_dir):
     except (OSError, ValueError, KeyError) as e:
         sys.exit(f"plot_probes: cannot read {run_dir}/summary.json: {e}")
     name = s.get("scene", {}).get("name", os.path.basename(os.path.normpath(run_dir)))
-    dofs = s.get("tissue", {}).get("dofs", rows[0].get("dofs", "?"))
+    # The run's largest total DOFs: an adaptive run ends on the mesh it coarsened back to
+    # (the 8x4x4's 675 DOFs after the withdrawal), which names nothing.
+    try:
+        counts = [int(r["dofs"]) for r in rows]
+        dofs = f"{max(counts):,}" if min(counts) == max(counts) else f"up to {max(counts):,}"
+    except (KeyError, ValueError):
+        dofs = str(s.get("tissue", {}).get("dofs", "?"))
     return {"name": name, "dofs": dofs, "rows": rows, "probes": sorted(probes)}
 
 
@@ -73,7 +79,7 @@ def main():
         fig, ax = plt.subplots(figsize=(6, 4))
         for r in runs:
             s, v = series(r, probe, args.component)
-            ax.plot(s, v, label=f"{r['dofs']} DOFs")
+            ax.plot(s, v, label=f"{r['name']} ({r['dofs']} DOFs)")
         ax.set_xlabel("step")
         ax.set_ylabel(("|u|" if args.component == "norm" else "u_x") + f" of probe {probe} [mm]")
         ax.set_title(f"Probe {probe}")

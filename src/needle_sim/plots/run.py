@@ -1,6 +1,8 @@
 """Plots of one `needle_sim run` (the README's first run): what the paper's figures show for
 the phantom insertion, from DIR/timeseries.csv:
-  - probe displacement magnitude against time (every probe),
+  - probe displacement magnitude against time (every probe, µm); a scene without probes
+    (the DBS scenes) shows its targets' displacement from rest instead (mm: the brain shift
+    included),
   - the tissue's DOFs against time (the adaptive mesh following the needle),
   - the axial force of each needle on its holder against time (what a force sensor reads:
     the column <needle>_axial_force, negative when the tissue resists the insertion).
@@ -21,6 +23,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 
+def top_panel(summary):
+    """The displacements the top panel shows: (columns' names, scale to the unit, axis label)."""
+    probes = names(summary, "probes")
+    if probes:
+        return probes, 1e6, "probe |u| [µm]"
+    targets = names(summary, "targets")
+    return targets, 1e3, ("target |u| from rest [mm]" if targets else "no probes or targets")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dir", help="output directory of `needle_sim run`")
@@ -32,7 +43,7 @@ def main():
         return 2
     try:
         summary, rows = load_summary(a.dir), load_rows(a.dir)
-        probes, needles = names(summary, "probes"), names(summary, "needles")
+        needles = names(summary, "needles")
     except (OSError, ValueError, KeyError) as e:
         print("plot_run: cannot read the run in %s: %s" % (a.dir, e), file=sys.stderr)
         return 2
@@ -41,11 +52,12 @@ def main():
         return 2
     t = [float(r["t"]) for r in rows]
     fig, ax = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
-    for p in probes:
-        u = [math.sqrt(sum(float(r[p + "_u" + d]) ** 2 for d in "xyz")) * 1e6 for r in rows]
+    shown, scale, what = top_panel(summary)
+    for p in shown:
+        u = [math.sqrt(sum(float(r[p + "_u" + d]) ** 2 for d in "xyz")) * scale for r in rows]
         ax[0].plot(t, u, label=p, lw=1)
-    ax[0].set_ylabel("probe |u| [µm]")
-    if probes:
+    ax[0].set_ylabel(what)
+    if shown:
         ax[0].legend(ncol=4, fontsize=7)
     dofs_col = "dofs"
     ax[1].plot(t, [int(r[dofs_col]) for r in rows], color="k", lw=1)
