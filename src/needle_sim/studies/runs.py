@@ -64,17 +64,17 @@ def write_csv(path, table):
         w.writerows(table)
 
 
-def write_doc_block(doc, marker, md, command):
+def write_doc_block(doc, marker, md, command, commit=None):
     """Replaces what is between '<!-- MARKER: table -->' and '<!-- end MARKER -->' in doc/DOC with
-    a line naming the date, the commit and `command`, then `md`: figures in the docs are written
-    by the study that measured them, never by hand."""
+    a line naming the date, the commit (`commit`, else the checkout's now) and `command`, then
+    `md`: figures in the docs are written by the study that measured them, never by hand."""
     path = os.path.join(paths.share_dir(), "doc", doc)
     text = open(path, encoding="utf-8").read()
     block = re.compile(r"(<!-- %s: table -->\n)(.*?)(<!-- end %s -->)" % (re.escape(marker), re.escape(marker)), re.S)
     if not block.search(text):
         sys.exit(f"{path}: no '<!-- {marker}: table -->' ... '<!-- end {marker} -->' block")
-    commit = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=paths.share_dir(),
-                            stdout=subprocess.PIPE, text=True).stdout.strip()
+    commit = commit or subprocess.run(["git", "describe", "--always", "--dirty"], cwd=paths.share_dir(),
+                                      stdout=subprocess.PIPE, text=True).stdout.strip()
     head = f"Made on {datetime.date.today().isoformat()} at {commit} by `{command}`.\n\n"
     text = block.sub(lambda m: m.group(1) + head + md + m.group(3), text)
     with open(path, "w", encoding="utf-8") as f:

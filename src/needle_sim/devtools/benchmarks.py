@@ -1,0 +1,464 @@
+"""doc/benchmarks.md's tables, measured and written by one program.
+
+    scripts/benchmarks.py --list                  # the benchmarks, what each measures, how long it takes
+    scripts/benchmarks.py                         # the quick set, each table into its block
+    scripts/benchmarks.py --only soak steer       # some of them
+    scripts/benchmarks.py --full                  # and the studies that take hours
+    scripts/benchmarks.py --check                 # exit 1 if a block lacks its table, date, commit or commands
+
+Each table sits between '<!-- ID: table -->' and '<!-- end ID -->' (the block the study scripts
+write with --write-doc, studies.runs.write_doc_block) and opens with the date, the commit
+(`git describe --always --dirty`), the machine and the commands that made it. Run it on an
+otherwise idle machine after `bash scripts/test.sh` has built the tool: a table is only as
+good as the machine's quiet. The `node_overhead` benchmark launches the ROS node
+(`roslaunch needle_sim sim.launch`): source devel/setup.bash first.
+"""
+import argparse
+import csv
+import json
+import os
+import platform
+import random
+import re
+import shlex
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+from .. import paths
+from ..studies.runs import write_doc_block
+
+DOC = "benchmarks.md"
+TOOL_SHOWN = "devel/lib/needle_sim/needle_sim"
+
+
+def root():
+    return paths.share_dir()
+
+
+def run(cmd, timeout=7200):
+    """Runs a command (a list; 'T' stands for the tool) from the repository's root: its stdout."""
+    full = [paths.tool() if c == "T" else c for c in cmd]
+    p = subprocess.run(full, cwd=root(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=timeout)
+    if p.returncode != 0:
+        raise RuntimeError("%s: exit %d\n%s" % (" ".join(full), p.returncode, p.stderr[-2000:]))
+    return p.stdout
+
+
+def shown(cmd):
+    """The command as the docs show it (the tool by its path from the repository's root); a
+    string is shown as it is (a shell line, a comment)."""
+    if isinstance(cmd, str):
+        return cmd
+    return " ".join(TOOL_SHOWN if c == "T" else shlex.quote(c) for c in cmd)
+
+
+def placeholder(cmd, option, name):
+    """The command with `option`'s value (a temporary path) shown as `name`."""
+    c = list(cmd)
+    c[c.index(option) + 1] = name
+    return c
+
+
+def tables(text):
+    """The Markdown tables a command printed (lines starting with '|')."""
+    out, keep = [], False
+    for line in text.splitlines():
+        if line.startswith("|"):
+            out.append(line)
+            keep = True
+        elif keep:
+            out.append("")
+            keep = False
+    return "\n".join(out).strip() + "\n"
+
+
+def printed_table(cmd):
+    return lambda: (tables(run(cmd)), [cmd])
+
+
+def summary(out):
+    with open(os.path.join(out, "summary.json")) as f:
+        return json.load(f)
+
+
+def rows_of(out):
+    with open(os.path.join(out, "timeseries.csv"), newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def ms3(s):
+    """'median / p99.9 / max' of a summary's step_ms."""
+    return "%.3g / %.3g / %.3g" % (s["median"], s["p999"], s["max"])
+
+
+# --- benchmarks that need more than the tool's own table --------------------------------
+
+def element_step():
+    """The locking-free default element against the paper's at equal DOFs: the phantom
+    insertion's grids (bench) and dbs_coarse at the paper's brain (the sourced one locks the
+    paper's element: its shift is refused), two runs of each element in alternation."""
+    lines, cmds = [], []
+    for el in ("trilinear", "incompatible_modes_bbar"):
+        cmd = ["T", "bench", "--scene", "phantom_insertion_8x4x4.yaml", "--cells", "8x4x4", "16x8x8", "--steps", "0",
+               "--set", "tissue.element=" + el]
+        cmds.append(cmd)
+        for line in tables(run(cmd)).splitlines():
+            if line.startswith("| 8x4x4") or line.startswith("| 16x8x8"):
+                c = [x.strip() for x in line.strip("|").split("|")]
+                lines.append("| `%s` | phantom insertion %s | %s | %s / %s / %s | |" % (el, c[0], c[1], c[3], c[4], c[5]))
+    dbs = {}
+    for rep in range(2):
+        for el in ("trilinear", "incompatible_modes_bbar"):
+            out = tempfile.mkdtemp(prefix="bench_el_")
+            cmd = ["T", "run", "config/scenes/dbs_coarse.yaml", "--out", out, "--quiet", "--set", "tissue.element=" + el,
+                   "--set", "tissue.material.young=6000", "--set", "tissue.material.poisson=0.45"]
+            run(cmd)
+            s = summary(out)
+            its = sum(int(r["linear_iterations"]) for r in rows_of(out))
+            dbs.setdefault(el, []).append((s["step_ms"], s["dofs"], its))
+            if rep == 0:
+                cmds.append(placeholder(cmd, "--out", "DIR"))
+    for el, runs in dbs.items():
+        lines.append("| `%s` | dbs_coarse, paper's brain | %s | %s | %s |" % (
+            el, runs[0][1], ", ".join(ms3(r[0]) for r in runs), ", ".join("{:,}".format(r[2]) for r in runs)))
+    head = ("| element | scene | DOFs | step ms median / p99.9 / max | CG iterations (run) |\n"
+            "|---|---|---|---|---|\n")
+    return head + "\n".join(lines) + "\n", cmds
+
+
+def dbs_prestep():
+    """The brain-shift pre-step on the adaptive and the fine DBS grids: three loads each."""
+    rows, cmds = [], []
+    for scene in ("dbs_adaptive", "dbs_fine"):
+        ms, out = [], tempfile.mkdtemp(prefix="bench_dbs_")
+        cmd = ["T", "run", "config/scenes/%s.yaml" % scene, "--out", out, "--quiet", "--set", "time.duration=0.01"]
+        cmds.append(placeholder(cmd, "--out", "DIR"))
+        for _ in range(3):
+            run(cmd)
+            s = summary(out)
+            ms.append(s["brain_shift"]["ms"])
+        b = s["brain_shift"]
+        rows.append("| %s | {:,} | %d | %d | %.0f / %.0f / %.0f | %.6g |".format(b["dofs"]) % (
+            scene, b["factorizations"], b["newton_iterations"], min(ms), statistics.median(ms), max(ms), b["load_scale"]))
+    head = ("| scene | DOFs (final grid) | factorisations | Newton steps | pre-step ms min / median / max | load scale |\n"
+            "|---|---|---|---|---|---|\n")
+    return head + "\n".join(rows) + "\n", cmds
+
+
+def constraint_solve():
+    """The block active-set solve against the paper's projected Gauss-Seidel, every step."""
+    cases = [("phantom 8×4×4 (E = 10 MPa)", "phantom_insertion_8x4x4", []),
+             ("phantom, E = 6 kPa (brain-like)", "phantom_insertion_8x4x4", ["--set", "tissue.material.young=6000"]),
+             ("phantom, grip 500 Pa", "phantom_insertion_8x4x4", ["--set", "interaction.grip_pressure=500"]),
+             ("`dbs_adaptive`", "dbs_adaptive", [])]
+    rows, cmds = [], []
+    for label, scene, extra in cases:
+        for method, name in (("block", "block"), ("gauss_seidel", "Gauss–Seidel")):
+            out = tempfile.mkdtemp(prefix="bench_cs_")
+            cmd = ["T", "run", "config/scenes/%s.yaml" % scene, "--out", out, "--quiet",
+                   "--set", "interaction.solver.method=" + method] + extra
+            run(cmd)
+            s = summary(out)
+            it = s["interaction"]
+            c = it["constraint_ms"]
+            rows.append("| %s | %s | {:,} | %s | %s | %d | %.2g |".format(s["steps"]) % (
+                label if method == "block" else "", name, ms3(s["step_ms"]), ms3(c), it["unconverged_steps"],
+                it["constraint_residual_max"]))
+            cmds.append(placeholder(cmd, "--out", "DIR"))
+    head = ("| scene | solver | steps | step ms median / p99.9 / max | constraint ms median / p99.9 / max "
+            "| unconverged steps | largest residual |\n|---|---|---|---|---|---|---|\n")
+    return head + "\n".join(rows) + "\n", cmds
+
+
+def prediction():
+    """A 10 s plan predicted on a copy of the adaptive phantom, five times."""
+    out = tempfile.mkdtemp(prefix="bench_predict_")
+    cmd = ["T", "predict", "config/scenes/phantom_insertion_adaptive.yaml", "--duration", "10", "--advance", "0.02",
+           "--dt", "0.01", "--target", "0.02", "0.01", "0.01", "--repeat", "5", "--compare",
+           "--json", os.path.join(out, "p.json")]
+    run(cmd)
+    with open(os.path.join(out, "p.json")) as f:
+        j = json.load(f)
+    c = j.get("compare") or {}
+    table = ("| scene | simulated | dt | steps | max DOFs | total median ms | copy median ms | run median ms "
+             "| faster than real time | against the scene's dt: tip / target / force |\n"
+             "|---|---|---|---|---|---|---|---|---|---|\n"
+             "| phantom_insertion_adaptive | %g s | %g s | %d | {:,} | %.1f | %.2f | %.1f | %.0f× | %.2g m / %.2g m / %.2g N |\n".format(
+                 j["max_dofs"]) % (j["duration"], j["dt"], j["steps"], j["total_ms_median"], j["copy_ms_median"],
+                                   j["run_ms_median"], 1e3 * j["duration"] / j["total_ms_median"],
+                                   c.get("tip_m", float("nan")), c.get("target_m", float("nan")),
+                                   c.get("force_n", float("nan"))))
+    return table, [placeholder(cmd, "--json", "FILE")]
+
+
+def gel_demo():
+    """The gel steering demo (bevel tip, 7,809 DOFs, 5 ms steps), three runs."""
+    rows, cmds = [], []
+    for rep in range(3):
+        out = tempfile.mkdtemp(prefix="bench_gel_")
+        cmd = ["T", "run", "config/scenes/gel_bevel_steering.yaml", "--out", out, "--quiet"]
+        t0 = time.monotonic()
+        run(cmd)
+        wall = time.monotonic() - t0
+        s, r = summary(out), rows_of(out)
+        cg = statistics.mean(float(x["linear_iterations"]) for x in r)
+        rows.append("| %d | %d | %s | %.1f | %.2f |" % (rep + 1, s["steps"], ms3(s["step_ms"]), wall, cg))
+        if rep == 0:
+            cmds.append(placeholder(cmd, "--out", "DIR"))
+    head = ("| run | steps | step ms median / p99.9 / max | wall s (2.8 s simulated) | CG iterations a step |\n"
+            "|---|---|---|---|---|\n")
+    return head + "\n".join(rows) + "\n", cmds
+
+
+def steer():
+    """The gel demo's roll-flip plan to a target 5 mm off the axis at 40 mm, predictions at 10 ms."""
+    out = tempfile.mkdtemp(prefix="bench_steer_")
+    cmd = ["T", "steer", "config/scenes/gel_bevel_steering.yaml", "--target", "0.040", "0.020", "0.015", "--speed",
+           "0.02", "--dt", "0.01", "--json", os.path.join(out, "s.json")]
+    t0 = time.monotonic()
+    printed = run(cmd)
+    wall = time.monotonic() - t0
+    with open(os.path.join(out, "s.json")) as f:
+        j = json.load(f)
+    head = [line for line in printed.splitlines() if line.startswith(("steer:", "plan:", "live:"))]
+    m = re.search(r"in ([0-9.]+) s", head[0]) if head else None
+    live = next((line for line in head if line.startswith("live:")), "")
+    lm = re.search(r"([0-9.]+) mm from the target, ([0-9.]+) mm from the prediction", live)
+    table = ("| predictions | steps each | planning s | flip depth mm | predicted tip–target mm | live tip–target mm "
+             "| live–predicted mm | wall s (with the live run) |\n|---|---|---|---|---|---|---|---|\n"
+             "| %d | %s | %s | %.1f | %.3f | %s | %s | %.1f |\n" % (
+                 len(j["iterations"]), " + ".join(str(i["steps_run"]) for i in j["iterations"]),
+                 m.group(1) if m else "–", 1e3 * j["flip_depth"], 1e3 * j["iterations"][-1]["distance"],
+                 lm.group(1) if lm else "not run", lm.group(2) if lm else "–", wall))
+    return table, [placeholder(cmd, "--json", "FILE")]
+
+
+def calibration():
+    """A synthetic record (cutting 30 mN, grip 400 Pa, 0.5 mN of noise, every 5th 2 ms step of
+    the 8x4x4 phantom insertion) fitted from (15 mN, 150 Pa)."""
+    out = tempfile.mkdtemp(prefix="bench_cal_")
+    truth = ["--set", "time.dt=0.002", "--set", "interaction.cutting_force=0.03", "--set",
+             "interaction.grip_pressure=400"]
+    make = ["T", "run", "config/scenes/phantom_insertion_8x4x4.yaml", "--out", os.path.join(out, "truth"),
+            "--quiet"] + truth
+    run(make)
+    rng = random.Random(1)
+    with open(os.path.join(out, "force.csv"), "w") as f:
+        f.write("t,axial_force\n")
+        for r in rows_of(os.path.join(out, "truth"))[4::5]:
+            f.write("%s,%.9g\n" % (r["t"], float(r["needle_axial_force"]) + rng.gauss(0.0, 5e-4)))
+    cal = ["T", "calibrate", "config/scenes/phantom_insertion_8x4x4.yaml", "--set", "time.dt=0.002", "--data",
+           os.path.join(out, "force.csv"), "--fit", "interaction.cutting_force,interaction.grip_pressure", "--start",
+           "interaction.cutting_force=0.015", "--start", "interaction.grip_pressure=150", "--out",
+           os.path.join(out, "fit"), "--no-plot", "--quiet"]
+    run(cal)
+    with open(os.path.join(out, "fit", "calibration.json")) as f:
+        j = json.load(f)
+    p = j["parameters"]
+    c, g = p["interaction.cutting_force"], p["interaction.grip_pressure"]
+    table = ("| parameter | truth | start | fitted | standard error |\n|---|---|---|---|---|\n"
+             "| interaction.cutting_force [N] | 0.03 | 0.015 | %.6g | %.2g |\n"
+             "| interaction.grip_pressure [Pa] | 400 | 150 | %.5g | %.2g |\n\n"
+             "| RMS residual mN (noise 0.5) | evaluations | + Jacobian | wall s |\n|---|---|---|---|\n"
+             "| %.3f | %d | %d | %.1f |\n" % (
+                 c["value"], c["std_error"] or float("nan"), g["value"], g["std_error"] or float("nan"),
+                 1e3 * j["rms_residual_n"], j["evaluations"], j["jacobian_evaluations"], j["wall_s"]))
+    note = "# DIR/force.csv: t and the truth's needle_axial_force every 5th step + N(0, 0.5 mN), seed 1"
+    return table, [placeholder(make, "--out", "DIR/truth"), note,
+                   placeholder(placeholder(cal, "--data", "DIR/force.csv"), "--out", "DIR/fit")]
+
+
+def node_overhead():
+    """The ROS node's outputs against its core step: sim.launch's phantom, every output
+    subscribed, 4 s from the start; two launches."""
+    rows = []
+    for rep in range(2):
+        launch = subprocess.Popen(["roslaunch", "needle_sim", "sim.launch"], cwd=root(), stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL, start_new_session=True)
+        try:
+            time.sleep(3.0)  # roscore, the node, its scene
+            text = run(["/usr/bin/python3", "scripts/node_overhead.py", "--seconds", "4"], timeout=120)
+        finally:
+            os.killpg(launch.pid, signal.SIGINT)
+            launch.wait(timeout=60)
+        m = re.search(r"core step median ([0-9.]+) ms, publish median ([0-9.]+) ms, publish p95 ([0-9.]+) ms, "
+                      r"overhead \(sum publish / sum step\) ([0-9.]+) %", text)
+        o = re.search(r"output thread ([0-9.]+) ms per step \(([0-9.]+) %", text)
+        if not m:
+            raise RuntimeError("node_overhead.py printed no figures:\n" + text)
+        rows.append("| %d | %s | %s | %s | %s %% | %s |" % (rep + 1, m.group(1), m.group(2), m.group(3), m.group(4),
+                                                          "%s ms (%s %% of a step)" % o.groups() if o else "–"))
+    head = ("| launch | core step median ms | publish median ms | publish p95 ms | sum of publish / sum of steps "
+            "| output thread per step (other core) |\n|---|---|---|---|---|---|\n")
+    return head + "\n".join(rows) + "\n", ["roslaunch needle_sim sim.launch &   # then, 3 s later:",
+                                             "scripts/node_overhead.py --seconds 4"]
+
+
+def stability_sweep():
+    """The whole stability sweep (one parameter at a time across its range); its map into doc/."""
+    out = "results/stability"
+    cmd = ["/usr/bin/python3", "scripts/stability_sweep.py", "--out", out]
+    run(cmd)
+    with open(os.path.join(root(), out, "sweep.md"), encoding="utf-8") as f:
+        table = tables(f.read())
+    shutil.copy(os.path.join(root(), out, "stability_map.png"), os.path.join(root(), "doc", "stability_map.png"))
+    return table, [cmd]
+
+
+def ci():
+    """.ci/run on a clean clone of the commit checked out (what CI runs): its phase times."""
+    work = tempfile.mkdtemp(prefix="bench_ci_")
+    clone = os.path.join(work, "needle_sim")
+    subprocess.run(["git", "clone", "-q", root(), clone], check=True)
+    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=clone, stdout=subprocess.PIPE,
+                         text=True).stdout.strip()
+    p = subprocess.run(["bash", ".ci/run"], cwd=clone, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                       timeout=3 * 3600)
+    tail = p.stderr.split("=== .ci/run phase times ===")[-1]
+    rows = ["| %s | %s |" % (m.group(2), m.group(1)) for m in re.finditer(r"^\s*(\d+) s  (.+)$", tail, re.M)]
+    if p.returncode != 0 or not rows:
+        raise RuntimeError(".ci/run failed (exit %d) in %s:\n%s" % (p.returncode, clone, p.stderr[-3000:]))
+    shutil.rmtree(work, ignore_errors=True)
+    table = "| phase (clean clone of %s) | seconds |\n|---|---|\n%s\n" % (rev, "\n".join(rows))
+    return table, ["git clone -q . DIR && cd DIR && bash .ci/run"]
+
+
+def study(script, args, minutes):
+    """A study script that writes its own blocks (--write-doc): run for --full only."""
+    cmd = ["/usr/bin/python3", "scripts/%s" % script] + list(args) + ["--write-doc"]
+
+    def measure():
+        subprocess.run(cmd, cwd=root(), check=True, timeout=minutes * 60 * 3)
+        return None, [cmd]
+    return measure
+
+
+BENCHMARKS = [
+    # id, what, minutes on an idle 2-core machine, --full only, how
+    ("phantom_step", "the paper's phantom under gravity, three grids: the stale-factor PCG against a fresh factor "
+     "every step", 1, False, printed_table(["T", "bench", "--compare-direct"])),
+    ("needle_step", "a needle alone in free motion (the beam's step), microseconds",
+     1, False, printed_table(["T", "bench", "--scene", "needle_free_motion.yaml", "--steps", "5000"])),
+    ("insertion", "the phantom insertion on 8×4×4 and 16×8×8 with a shaft point every 0.4 mm, every step",
+     1, False, printed_table(["T", "bench", "--scene", "phantom_insertion_8x4x4.yaml", "--cells", "8x4x4", "16x8x8",
+                              "--steps", "0", "--set", "interaction.shaft_spacing=0.0004"])),
+    ("element_step", "the default element against the paper's at equal DOFs", 2, False, element_step),
+    ("adaptive_phantom", "the adaptive phantom insertion, every step back to back",
+     1, False, printed_table(["T", "bench", "--scene", "phantom_insertion_adaptive.yaml", "--steps", "0"])),
+    ("adaptive_phantom_paced", "the adaptive phantom insertion paced at its 1 ms (step k starts at k dt)",
+     1, False, printed_table(["T", "bench", "--scene", "phantom_insertion_adaptive.yaml", "--steps", "0", "--pace"])),
+    ("dbs_paced", "the adaptive DBS scene paced at its 10 ms (after the brain shift)",
+     1, False, printed_table(["T", "bench", "--scene", "dbs_adaptive.yaml", "--steps", "0", "--pace"])),
+    ("dbs_prestep", "the brain-shift pre-step when a DBS scene loads, three loads each", 1, False, dbs_prestep),
+    ("constraint_solve", "the block active-set constraint solve against projected Gauss–Seidel, four scenes",
+     2, False, constraint_solve),
+    ("target_error", "the adaptive phantom with a target's goal-oriented error bound every 20 steps",
+     1, False, printed_table(["T", "bench", "--scene", "phantom_insertion_adaptive.yaml", "--steps", "0",
+                              "--target-error-every", "20", "--target", "0.022", "0.01", "0.01"])),
+    ("prediction", "a 10 s plan predicted on a copy of the adaptive phantom", 1, False, prediction),
+    ("gel_demo", "the bevel-tip gel demo, three runs", 1, False, gel_demo),
+    ("steer", "a bevel needle's roll-flip plan and its live run", 1, False, steer),
+    ("calibration", "calibrate recovering known cutting force and grip from a noisy synthetic record",
+     1, False, calibration),
+    ("node_overhead", "the ROS node's output cost against its step (launches the node)", 1, False, node_overhead),
+    ("soak", "a back-and-forth insertion for 22,500 steps: memory and step time per cycle",
+     1, False, printed_table(["T", "soak", "config/scenes/phantom_insertion_adaptive.yaml", "--steps", "22500"])),
+    ("stability_sweep", "the stability sweep: one parameter at a time across its range", 2, False, stability_sweep),
+    ("adaptivity_study", "run time against probe error, adaptive against uniform meshes (writes its block)",
+     45, True, study("adaptivity_study.py", ["--out", "results/adaptivity_study"], 45)),
+    ("dbs_study", "the DBS scenario on every grid, with its friction sensitivity (writes dbs_study and "
+     "dbs_sensitivity; the 4 mm reference runs are reused when present, about 2 h when not)", 150, True,
+     study("dbs_study.py", ["--out", "results/dbs_study", "--reuse", "--reference", "--sensitivity", "--jobs", "2"],
+           150)),
+    ("ci", ".ci/run on a clean clone: the phase times", 60, True, ci),
+]
+
+
+def commit():
+    try:
+        return subprocess.run(["git", "describe", "--always", "--dirty"], cwd=root(), stdout=subprocess.PIPE,
+                              text=True).stdout.strip() or "unknown"
+    except OSError:
+        return "unknown"
+
+
+def machine():
+    cpu = "unknown CPU"
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return "%s, %d cores, %s" % (cpu, os.cpu_count() or 0, platform.platform(terse=True))
+
+
+def block_re(bid):
+    return re.compile(r"<!-- %s: table -->\n(.*?)<!-- end %s -->" % (re.escape(bid), re.escape(bid)), re.S)
+
+
+def check(path):
+    """Every benchmark has its block; each block names its date, commit and command and holds a table."""
+    text = open(path, encoding="utf-8").read()
+    bad = []
+    for bid, _, _, full, _ in BENCHMARKS:
+        m = block_re(bid).search(text)
+        if not m:
+            bad.append("%s (no block)" % bid)
+        elif full and not m.group(1).strip():
+            continue  # a --full benchmark not measured yet: an empty block
+        elif not re.match(r"Made on \d{4}-\d\d-\d\d at \S+ by `[^`]+`", m.group(1)) or "|---" not in m.group(1):
+            bad.append("%s (no 'Made on DATE at COMMIT by `COMMAND`' line or no table)" % bid)
+    if bad:
+        print("%s: %s" % (path, "; ".join(bad)))
+        return 1
+    print("%s: %d benchmark blocks, each with its date, commit, command and table" % (path, len(BENCHMARKS)))
+    return 0
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", nargs="+", metavar="ID")
+    ap.add_argument("--full", action="store_true", help="also the studies that take hours")
+    ap.add_argument("--list", action="store_true")
+    ap.add_argument("--check", action="store_true")
+    a = ap.parse_args()
+    path = os.path.join(root(), "doc", DOC)
+    known = [b[0] for b in BENCHMARKS]
+    if a.list:
+        for bid, what, minutes, full, _ in BENCHMARKS:
+            print("%-24s %4d min%s  %s" % (bid, minutes, " (--full)" if full else "", what))
+        return 0
+    if a.check:
+        return check(path)
+    wanted = a.only or [b[0] for b in BENCHMARKS if a.full or not b[3]]
+    unknown = [w for w in wanted if w not in known]
+    if unknown:
+        sys.exit("benchmarks.py: no benchmark %s (--list)" % ", ".join(unknown))
+    if not os.access(paths.tool(), os.X_OK):
+        sys.exit("benchmarks.py: no needle_sim tool at %s (build first: bash scripts/test.sh)" % paths.tool())
+    # The commit measured: taken once, before the first table makes the page (and the tree) dirty.
+    where, rev = machine(), commit()
+    for bid, what, minutes, full, how in BENCHMARKS:
+        if bid not in wanted:
+            continue
+        print("benchmarks.py: %s (about %d min) ..." % (bid, minutes), flush=True)
+        table, cmds = how()
+        if table is None:
+            continue  # a study: it wrote its own blocks
+        md = "On %s:\n\n```bash\n%s\n```\n\n%s" % (where, "\n".join(shown(c) for c in cmds), table)
+        # Written after each: a long run keeps what it measured.
+        write_doc_block(DOC, bid, md, "scripts/benchmarks.py --only %s" % bid, rev)
+    print("benchmarks.py: %s written (commit %s)" % (path, rev))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
