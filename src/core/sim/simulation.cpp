@@ -74,10 +74,8 @@ Simulation::Simulation(const Scene& scene, const Options& options) : scene_(scen
       }
     }
   makeInteraction(nullptr);
-  // The brain shift's static solves (and the first step's factor after them) may use more
-  // BLAS threads. They pay off only for large factors: on the adaptive DBS mesh's first grid
-  // (3,000 DOFs) two threads gained nothing and were sometimes slower (2026-12-04,
-  // doc/benchmarks.md). A scene without the shift leaves the count alone.
+  // The brain shift's static solves (and the first step's factor) may use more BLAS threads;
+  // they pay off only for large factors (on 3,000 DOFs two threads gained nothing).
   constexpr int kSetupThreadsMinDofs = 10000;
   ScopedBlasThreads setup_threads(scene.brain_shift && mesh.numDofs() >= kSetupThreadsMinDofs ? setupThreads() : 0);
   if (scene.brain_shift) preStep();
@@ -122,10 +120,7 @@ Simulation::Simulation(const Simulation& o)
   makeInteraction(o.interaction_.get());
 }
 
-Simulation::~Simulation() {
-  // Background work reads the parts: it finishes before they go.
-  passes_.reset();
-}
+Simulation::~Simulation() { passes_.reset(); }  // background work reads the parts: it stops first
 
 void Simulation::makeEstimation(const Simulation* o) {
   // The regularised point of the goal estimate: a ball of half the finest element's edge.
