@@ -14,7 +14,6 @@ good as the machine's quiet. The `node_overhead` benchmark launches the ROS node
 (`roslaunch needle_sim sim.launch`): source devel/setup.bash first.
 """
 import argparse
-import csv
 import json
 import os
 import platform
@@ -30,6 +29,8 @@ import tempfile
 import time
 
 from .. import paths
+from ..run_outputs import load_rows as rows_of
+from ..run_outputs import load_summary as summary
 from ..studies.runs import write_doc_block
 
 DOC = "benchmarks.md"
@@ -79,16 +80,6 @@ def tables(text):
 
 def printed_table(cmd):
     return lambda: (tables(run(cmd)), [cmd])
-
-
-def summary(out):
-    with open(os.path.join(out, "summary.json")) as f:
-        return json.load(f)
-
-
-def rows_of(out):
-    with open(os.path.join(out, "timeseries.csv"), newline="") as f:
-        return list(csv.DictReader(f))
 
 
 def ms3(s):
