@@ -4,6 +4,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <mutex>
 #include <thread>
 
 #include "needle_sim/core/background_priority.hpp"
@@ -38,6 +39,15 @@ struct AdaptationPasses::PendingPass {
   long take_step = 0;    // its decision is taken up here at the latest
   long switch_step = 0;  // a change is switched to here (as if decided at `step`)
   std::shared_future<std::shared_ptr<const PassDecision>> decision;
+  // The same decision, also handed over under a mutex. ThreadSanitizer once reported the copy
+  // of its estimate after the future's get() as a race with the writing on the pass's thread
+  // (CI, 2026-12-05; not reproduced in a dozen runs since): a mutex's hand-over is one it sees; the
+  // future stays what the stepping thread waits on and what carries the pass's error.
+  struct Slot {
+    std::mutex m;
+    std::shared_ptr<const PassDecision> d;
+  };
+  std::shared_ptr<Slot> slot;
   std::shared_future<std::shared_ptr<AdaptiveTissue::Prepared>> build;  // null after no change
 };
 
@@ -187,6 +197,7 @@ void AdaptationPasses::startPass(const StepClock& clock) {
   pp->switch_step = clock.step + std::max(lagSteps(settings_.rebuild_delay, clock.dt), estimate_lag);
   std::promise<std::shared_ptr<const PassDecision>> decided;
   pp->decision = decided.get_future().share();
+  pp->slot = std::make_shared<PendingPass::Slot>();
   const VecX* reference = energy_.reference();  // changes only at a switch
   AdaptiveTissue* tissue = &tissue_;
   EnergyErrorEstimator* energy = &energy_;
@@ -195,7 +206,7 @@ void AdaptationPasses::startPass(const StepClock& clock) {
   energy_.lend();
   pp->build = std::async(
                   std::launch::async,
-                  [tissue, energy, spr, forest, reference, h = clock.dt, decided = std::move(decided),
+                  [tissue, energy, spr, forest, reference, h = clock.dt, decided = std::move(decided), slot = pp->slot,
                    retired = tissue_.takeRetired(), x = VecX(body.positions()), v = VecX(body.velocities()),
                    guesses = body.model().rotationGuesses(), points = points_()]() mutable
                   -> std::shared_ptr<AdaptiveTissue::Prepared> {
@@ -224,6 +235,10 @@ void AdaptationPasses::startPass(const StepClock& clock) {
                       testDelay();  // tests: a late pass
                       const bool changed = d->result.changed;
                       giveBack();
+                      {
+                        std::lock_guard<std::mutex> lock(slot->m);
+                        slot->d = d;
+                      }
                       decided.set_value(std::move(d));  // from here on, nothing of the simulation's is touched
                       if (!changed) return nullptr;
                     } catch (...) {
@@ -243,7 +258,12 @@ void AdaptationPasses::startPass(const StepClock& clock) {
 void AdaptationPasses::takePass(StepStats& stats) {
   PendingPass& pp = *pending_pass_;
   if (pp.decision.wait_for(std::chrono::seconds(0)) != std::future_status::ready) ++counters_.pass_waits;
-  const std::shared_ptr<const PassDecision> d = pp.decision.get();  // rethrows the pass's error
+  pp.decision.get();  // rethrows the pass's error
+  std::shared_ptr<const PassDecision> d;
+  {
+    std::lock_guard<std::mutex> lock(pp.slot->m);
+    d = pp.slot->d;
+  }
   energy_.adopt(d->estimate);  // the last one made (of the pass's step, not of this one)
   stats.refined += d->result.refined;
   stats.coarsened += d->result.coarsened;
