@@ -26,6 +26,14 @@ def _wait(cond, seconds, what):
     raise AssertionError(f"timed out waiting for {what}")
 
 
+def _address(sched_file):
+    try:
+        with open(sched_file) as f:
+            return json.load(f)["address"]
+    except (OSError, ValueError, KeyError):
+        return None
+
+
 class Distributed(unittest.TestCase):
     def setUp(self):
         self.out = out_dir("distributed")
@@ -35,9 +43,8 @@ class Distributed(unittest.TestCase):
         self.procs.append(subprocess.Popen(["/usr/bin/dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
                                             "--no-dashboard", "--scheduler-file", sched_file],
                                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        _wait(lambda: os.path.exists(sched_file), 30, "the scheduler")
-        with open(sched_file) as f:
-            self.address = json.load(f)["address"]
+        # The scheduler writes its file in place: it can exist before it holds the JSON.
+        self.address = _wait(lambda: _address(sched_file), 30, "the scheduler's address")
         # No nanny: a killed worker stays dead, its tasks must go to the other one.
         self.workers = [subprocess.Popen(["/usr/bin/dask", "worker", self.address, "--nthreads", "1", "--no-nanny",
                                           "--no-dashboard", "--name", f"w{i}"],
