@@ -334,23 +334,39 @@ TEST(DbsCoarse, HolderForceGrowsWithDepthAndEveryConstraintSolveConverges) {
   std::cout << " N; over the grip's share: at least " << worst_share << ", " << share_at_40mm << " at 35-40 mm\n";
 }
 
-// The dynamic test of the target error bound: at every 50th step of the insertion (0 to 9 s),
-// the coarse run's bound on the left STN's regularised displacement covers its difference from
-// the finer dbs_fine run at the same step (the reference), and is not loose beyond the ratio
-// measured when the reference was made.
-//
-// Reference: test/data/reference/dbs_fine_stn.csv, made by scripts/make_dbs_reference.sh at
-// commit eefc828 (the brain of Bennion et al. on the locking-free element; its first line
-// names the commit). Measured then (doc/verification.md): the difference 0.27-0.50 mm while
-// the cannula approaches (the shift's direction), rising to 4.6 mm at 8.5 s (the cannula
-// pushes the STN); bound / difference 6.5 at 8.5 s, 30-67 while the shift dominates.
-TEST(DbsCoarse, TargetErrorBoundCoversTheDifferenceFromTheFineReference) {
+// The left STN's error bound on dbs_coarse against the finer runs, at every sampled step to
+// 9 s (the cannula at the STN). After the brain shift (step 0): against the 4 mm grid's
+// shifted STN (test/data/reference/dbs_shift_4mm.csv), the bound covers the distance and is
+// at most 4 times it (the sharpness goal). During the insertion: against dbs_fine
+// (test/data/reference/dbs_fine_stn.csv, made by scripts/make_dbs_reference.sh at commit
+// eefc828; its first line names the commit), which is no exact reference (its own shift is
+// 0.77 mm from the 4 mm grid's): the bound covers the coarse-fine difference at every step,
+// and where the cannula pushes the STN by millimetres (the difference above 2 mm, the fine
+// run's own error a small part of it) it is at most 4 times the difference. Measured
+// (2026-12-05, the sum of absolute element contributions): 3.16 mm for 1.26 mm after the
+// shift (2.5x); bound / difference 1.4-1.8 where it is above 2 mm, 6-14 while the shift
+// dominates (0.3-0.5 mm from dbs_fine, which is itself 0.77 mm off). The global Cauchy-Schwarz
+// product (before 2026-12-05) was 17-20 mm throughout: 13x after the shift.
+TEST(DbsCoarse, TargetErrorBoundCoversTheDifferenceFromFinerRunsAndIsAtMostFourTimesIt) {
   const Reference ref = readReference();
   ASSERT_FALSE(ref.rows.empty()) << kReference << " missing or empty: run scripts/make_dbs_reference.sh";
   std::cout << "reference: " << ref.made_by << "\n";
   const CoarseRun& r = coarse();
   ASSERT_EQ(r.stn.size(), ref.rows.size());
-  double min_ratio = 1e300, max_diff = 0, min_diff = 1e300;
+  // After the shift, against the 4 mm grid.
+  const Vec3 finest = readShift4mm();
+  ASSERT_TRUE(finest.allFinite()) << kShift4mm << " missing or unreadable";
+  ASSERT_EQ(r.stn[0].step, 0);
+  ASSERT_TRUE(r.stn[0].valid);
+  const double shift_error = (r.stn_shifted - finest).norm();
+  std::cout << "after the shift: |coarse - 4 mm grid| " << shift_error * 1e3 << " mm, bound " << r.stn[0].bound * 1e3
+            << " mm, ratio " << r.stn[0].bound / shift_error << "\n";
+  EXPECT_GT(shift_error, 1e-4);  // the coarse mesh does not already agree
+  EXPECT_GE(r.stn[0].bound, shift_error);
+  EXPECT_LE(r.stn[0].bound, 4.0 * shift_error);
+  // During the insertion, against dbs_fine.
+  double max_diff = 0, min_diff = 1e300, max_ratio_big = 0;
+  int big = 0;
   for (size_t k = 0; k < r.stn.size(); ++k) {
     const StnSample &c = r.stn[k], &f = ref.rows[k];
     ASSERT_EQ(c.step, f.step);
@@ -358,7 +374,10 @@ TEST(DbsCoarse, TargetErrorBoundCoversTheDifferenceFromTheFineReference) {
     ASSERT_TRUE(std::isfinite(c.bound)) << "step " << c.step;
     const double diff = (c.qoi - f.qoi).norm();
     EXPECT_GE(c.bound, diff) << "step " << c.step << ": the bound does not cover the coarse-fine difference";
-    min_ratio = std::min(min_ratio, c.bound / diff);
+    if (diff > 2e-3) {
+      ++big;
+      max_ratio_big = std::max(max_ratio_big, c.bound / diff);
+    }
     max_diff = std::max(max_diff, diff);
     min_diff = std::min(min_diff, diff);
     std::cout << "step " << c.step << ": |coarse - fine| " << diff * 1e3 << " mm, bound " << c.bound * 1e3
@@ -369,11 +388,8 @@ TEST(DbsCoarse, TargetErrorBoundCoversTheDifferenceFromTheFineReference) {
   // uncertainty at every step, and by millimetres where the cannula pushes the STN.
   EXPECT_GT(min_diff, 1e-4);
   EXPECT_GT(max_diff, 2e-3);
-  // The difference from dbs_fine is itself an underestimate of the coarse run's error (by
-  // up to 2x for a first-order rate), so the bound must stay well above it; and a bound more
-  // than 10x the largest difference it must cover is too loose to act on. Measured: 6.5.
-  EXPECT_GT(min_ratio, 4.0);
-  EXPECT_LT(min_ratio, 10.0);
+  EXPECT_GE(big, 2);
+  EXPECT_LE(max_ratio_big, 4.0);
 }
 
 // dbs_fine (the reference's scene) loads, builds and shifts as prescribed, and its shifted STN
@@ -400,7 +416,7 @@ TEST(DbsFine, BrainShiftMatchesTheCommittedReference) {
 }
 
 // dbs_adaptive: the pre-step refines where the estimate asks, solves the shift again on the
-// refined mesh, and keeps it; the shifted STN is nearer the 4 mm grid's (dbs_coarse refined
+// refined mesh, and keeps it, with its error bound; the shifted STN is nearer the 4 mm grid's (dbs_coarse refined
 // twice, 106,947 DOFs: test/data/reference/dbs_shift_4mm.csv, which says how it was made)
 // than dbs_coarse's and dbs_fine's are. dbs_fine itself is no reference for this: the shift's
 // direction moves by 0.5 mm from 16 to 8 mm cells and by 0.8 mm from 8 to 4 mm (the skull
@@ -409,7 +425,7 @@ TEST(DbsFine, BrainShiftMatchesTheCommittedReference) {
 // against 0.77 (dbs_fine) and 1.26 mm (dbs_coarse).
 TEST(DbsAdaptive, PreStepRefinesAndComesCloserToTheFinestShift) {
   setBlasThreads(1);
-  Simulation sim(loadScene(kScenes + "dbs_adaptive.yaml"));
+  Simulation sim(loadScene(kScenes + "dbs_adaptive.yaml"), withTargetErrors());
   const BrainShiftResult& s = sim.brainShift();
   ASSERT_TRUE(s.done);
   EXPECT_GE(s.passes, 2);
@@ -430,6 +446,12 @@ TEST(DbsAdaptive, PreStepRefinesAndComesCloserToTheFinestShift) {
             << coarse().tissue_dofs << " DOFs)\n";
   EXPECT_LT(adaptive, fine_off);
   EXPECT_LT(fine_off, coarse_off);
+  // The shift's error bound covers the distance to the 4 mm grid. Measured: 2.56 mm for
+  // 0.38 mm (6.7 times: sharper than the coarse mesh's 2.5 times it is not; doc/verification.md).
+  const TargetError& e = sim.targetError(l);
+  ASSERT_TRUE(e.valid);
+  std::cout << "bound after the shift " << e.bound * 1e3 << " mm: " << e.bound / adaptive << " times the distance\n";
+  EXPECT_GE(e.bound, adaptive);
 }
 
 // Writes the reference (scripts/make_dbs_reference.sh runs it): dbs_fine with target errors,

@@ -38,12 +38,24 @@ class TargetErrorEstimator {
   // do their bounds).
   const TargetError& of(int i, const TargetErrorState& s);
   const std::vector<TargetError>& all(const TargetErrorState& s);
+  // Target i's error at the state `s` (no shift error added) when the load is scaled to
+  // prescribe the length of target t's displacement along the unit direction d
+  // (brain_shift.target_shift). To first order the scale's relative error is
+  // -d.e_t / d.Q_t(u_h), so the error of Q_i is that of the functional
+  //     J_i(u) = Q_i(u) - Q_i(u_h) d.Q_t(u) / d.Q_t(u_h),
+  // whose dual is Z_i - Z_t d Q_i(u_h)^T / d.Q_t(u_h): for i = t, the error across d.
+  TargetError underPrescribedShift(int i, int t, const TargetErrorState& s, const Vec3& d);
   // The mesh changed: regularised points and duals are made again.
   void forget();
   // A target was added or moved: its regularised point is made again.
   void targetsChanged();
-  // The brain shift's own error per target (kept from the end of the pre-step).
-  void setShiftErrors(std::vector<TargetError> errors) { shift_errors_ = std::move(errors); }
+  // The brain shift's own error per target (kept from the end of the pre-step); until the
+  // next estimate, also the last ones.
+  void setShiftErrors(std::vector<TargetError> errors) {
+    shift_errors_ = errors;
+    errors_ = std::move(errors);
+    ever_ = true;
+  }
   // The last estimates computed, and the step they are of, or nullptr / -1.
   const std::vector<TargetError>* last() const { return ever_ ? &errors_ : nullptr; }
   long lastStep() const { return last_step_; }
@@ -51,6 +63,13 @@ class TargetErrorEstimator {
   double radius(int i, const TrackedPoints& points) const { return points.radius(i, default_radius_); }
 
  private:
+  // What the estimate is of at `s`: the reference state (nullptr: rest) and its primal estimate.
+  struct Estimated {
+    const VecX* reference;
+    const ErrorEstimate* primal;
+  };
+  Estimated estimated(const TargetErrorState& s);
+
   double default_radius_;
   std::vector<TargetQoi> qois_;            // per target, on the mesh in use (empty: to be made)
   std::vector<Eigen::MatrixXd> duals_;     // per target, the last duals on this mesh

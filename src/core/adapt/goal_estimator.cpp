@@ -38,22 +38,25 @@ TargetQoi targetQoi(const HexMesh& mesh, const PointLocator& locator, const Vec3
 }
 
 TargetError goalEstimate(const SprEstimator& spr, const VecX& x, const VecX* reference, const ErrorEstimate& primal,
-                         const Eigen::MatrixXd& Z, const TargetQoi& qoi, const HexMesh& mesh, const VecX& rest) {
+                         const Eigen::MatrixXd& Z, const TargetQoi& qoi, const HexMesh& mesh) {
   TargetError t;
   t.eta_u = primal.global;
   t.qoi = qoi.value(mesh, x) - (reference ? qoi.value(mesh, *reference) : Vec3::Zero());
-  (void)rest;
   t.indicator.assign(mesh.numElements(), 0.0);
   std::vector<double> zsq(mesh.numElements(), 0.0);
   for (int k = 0; k < 3; ++k) {
     const SprEstimator::DualIndicators d = spr.dual(x, reference, primal, Z.col(k));
     t.estimate[k] = d.mixed_total;
     t.eta_z[k] = d.global;
-    t.component_bound[k] = primal.global * d.global;
-    for (int e = 0; e < mesh.numElements(); ++e) zsq[e] += d.eta[e] * d.eta[e];
+    t.global_component_bound[k] = primal.global * d.global;
+    for (int e = 0; e < mesh.numElements(); ++e) {
+      zsq[e] += d.eta[e] * d.eta[e];
+      t.component_bound[k] += std::abs(d.mixed[e]);
+    }
   }
   for (int e = 0; e < mesh.numElements(); ++e) t.indicator[e] = primal.eta[e] * std::sqrt(zsq[e]);
   t.bound = t.component_bound.norm();
+  t.global_bound = t.global_component_bound.norm();
   t.valid = true;
   return t;
 }

@@ -369,6 +369,7 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
           t["error_estimate"] = arr(e.estimate);
           t["error_bound"] = e.bound;
           t["error_component_bound"] = arr(e.component_bound);
+          t["error_bound_global"] = e.global_bound;
           t["qoi"] = arr(e.qoi);
           t["qoi_radius"] = sim_.qoiRadius(i);
           t["error_step"] = sim_.lastTargetErrorStep();

@@ -198,15 +198,14 @@ void Simulation::preStep() {
   // shifted state (the insertion's estimates add it).
   if (options_.target_errors && numTargets() > 0) {
     std::vector<TargetError> errors = targetErrors();
-    // target_shift prescribes the length of that target's shift, not its direction: the
-    // estimate loses its component along the shift (the load scale makes that one exact), the
-    // bound is kept whole (a bound on the full error bounds its part across the shift). Before
-    // (2026-12-02) the whole error was dropped, and the DBS study showed the STN's bound
-    // missing the shift's direction error (0.5-0.8 mm against the 4 mm mesh).
-    if (t >= 0 && scene_.brain_shift->target_shift && errors[t].valid) {
-      const Vec3 d = total.target_displacement.norm() > 0 ? Vec3(total.target_displacement.normalized()) : Vec3::Zero();
-      TargetError& e = errors[t];
-      e.estimate -= e.estimate.dot(d) * d;
+    // target_shift scales the load to prescribe the length of that target's shift: the scale
+    // carries the mesh's error along the shift, and every target's error is that of the
+    // scaled problem (doc/method.md "Brain shift"); for that target, its error across the
+    // shift.
+    if (t >= 0 && scene_.brain_shift->target_shift && total.target_displacement.norm() > 0) {
+      const Vec3 d = total.target_displacement.normalized();
+      for (int i = 0; i < static_cast<int>(errors.size()); ++i)
+        errors[i] = target_errors_->underPrescribedShift(i, t, errorState(), d);
     }
     target_errors_->setShiftErrors(std::move(errors));
     tissue_->shifted() = tissue_->body().positions();

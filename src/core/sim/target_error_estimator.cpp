@@ -41,6 +41,35 @@ const TargetError& TargetErrorEstimator::of(int i, const TargetErrorState& s) {
     for (int k = 0; k < static_cast<int>(n); ++k)
       qois_.push_back(targetQoi(mesh, locator, s.points.target(k).planned, radius(k, s.points)));
   }
+  const Estimated in = estimated(s);
+  if (duals_.size() != n) duals_.resize(n);
+  Eigen::MatrixXd& Z = duals_[i];  // the last pass's on this mesh: CG starts from it
+  int iterations = 0;
+  TargetError e;
+  if (s.body.solveDual(qois_[i].load(mesh), Z, iterations))
+    e = goalEstimate(s.energy.spr(), s.body.positions(), in.reference, *in.primal, Z, qois_[i], mesh);
+  e.dual_iterations = iterations;
+  // After a brain shift the estimate is of the change since; the shift's own error adds
+  // (errors add, so do their bounds). A shift scaled by target_shift prescribes that
+  // target's displacement: its error is in the load scale, not added.
+  const VecX* ref = in.reference;
+  if (e.valid && ref && i < static_cast<int>(shift_errors_.size()) && shift_errors_[i].valid) {
+    e.estimate += shift_errors_[i].estimate;
+    e.component_bound += shift_errors_[i].component_bound;
+    e.bound += shift_errors_[i].bound;
+    e.global_component_bound += shift_errors_[i].global_component_bound;
+    e.global_bound += shift_errors_[i].global_bound;
+  }
+  if (e.valid && ref && i < static_cast<int>(shift_errors_.size())) e.qoi += shift_errors_[i].qoi;
+  errors_[i] = std::move(e);
+  steps_[i] = s.step;
+  errors_step_ = s.step;
+  last_step_ = s.step;
+  ever_ = true;
+  return errors_[i];
+}
+
+TargetErrorEstimator::Estimated TargetErrorEstimator::estimated(const TargetErrorState& s) {
   // The field the estimate is of: the change since the brain shift when there was one (the
   // insertion's), else the displacement from rest. On an adaptive mesh that is also the SPR
   // estimate's reference; on a uniform one the primal estimate is made for it here.
@@ -54,28 +83,20 @@ const TargetError& TargetErrorEstimator::of(int i, const TargetErrorState& s) {
     }
     primal = &goal_primal_;
   }
-  if (duals_.size() != n) duals_.resize(n);
-  Eigen::MatrixXd& Z = duals_[i];  // the last pass's on this mesh: CG starts from it
-  int iterations = 0;
-  TargetError e;
-  if (s.body.solveDual(qois_[i].load(mesh), Z, iterations))
-    e = goalEstimate(s.energy.spr(), s.body.positions(), ref, *primal, Z, qois_[i], mesh, mesh.restPositions());
-  e.dual_iterations = iterations;
-  // After a brain shift the estimate is of the change since; the shift's own error adds
-  // (errors add, so do their bounds). A shift scaled by target_shift prescribes that
-  // target's displacement: its error is in the load scale, not added.
-  if (e.valid && ref && i < static_cast<int>(shift_errors_.size()) && shift_errors_[i].valid) {
-    e.estimate += shift_errors_[i].estimate;
-    e.component_bound += shift_errors_[i].component_bound;
-    e.bound += shift_errors_[i].bound;
-  }
-  if (e.valid && ref && i < static_cast<int>(shift_errors_.size())) e.qoi += shift_errors_[i].qoi;
-  errors_[i] = std::move(e);
-  steps_[i] = s.step;
-  errors_step_ = s.step;
-  last_step_ = s.step;
-  ever_ = true;
-  return errors_[i];
+  return {ref, primal};
+}
+
+TargetError TargetErrorEstimator::underPrescribedShift(int i, int t, const TargetErrorState& s, const Vec3& d) {
+  const TargetError et = of(t, s);
+  const TargetError& ei = of(i, s);
+  if (!ei.valid || !et.valid) return ei;
+  const double along = d.dot(et.qoi);
+  if (!(std::abs(along) > 0)) return ei;
+  const Estimated in = estimated(s);
+  const Eigen::MatrixXd Z = duals_[i] - (duals_[t] * d) * (ei.qoi.transpose() / along);
+  TargetError e = goalEstimate(s.energy.spr(), s.body.positions(), in.reference, *in.primal, Z, qois_[i], s.body.mesh());
+  e.dual_iterations = ei.dual_iterations;
+  return e;
 }
 
 const std::vector<TargetError>& TargetErrorEstimator::all(const TargetErrorState& s) {

@@ -10,10 +10,13 @@ test/data/target_error/ and each target (interior, edge, face):
   - per mesh and component with a non-negligible error (above 1 % of the largest): the true
     error Q_ref - Q_h, the estimate, the effectivity (estimate / true error), and whether the
     bound covers the true error's norm.
-Writes DIR/target_error_study.md (tables) and DIR/target_error_study.csv.
+Writes DIR/target_error_study.md (tables and a summary: coverage, the bound's ratio to the true
+error, against the global Cauchy-Schwarz product's, the signed effectivity) and
+DIR/target_error_study.csv.
 
     scripts/target_error_study.py --out results/target_error_study          # about 15 min
     scripts/target_error_study.py --out results/target_error_study --phantom --compare-max   # + about 20 min
+    scripts/target_error_study.py --out results/target_error_study --phantom --compare-max --write-doc   # into the docs
 
 --phantom: the phantom insertion (8x4x4 and adaptive, estimates every 10th step) with targets
 2 mm ahead of the final tip position and at probes p3 and p1C, against the 32x16x16 run:
@@ -26,10 +29,12 @@ import csv
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 
 from .. import paths
+from .runs import write_doc_block
 
 SCENES = ["box_body_force.yaml", "box_end_displacement.yaml"]
 GRIDS = [(8, 4, 4), (16, 8, 8), (32, 16, 16), (64, 32, 32)]
@@ -92,6 +97,7 @@ def phantom(a, md):
             subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
         runs[label] = {int(r["step"]): r for r in read_csv(os.path.join(out, "timeseries.csv"))}
     ref = runs["32x16x16"]
+    summary = phantom_summary(runs)
     md.append("\n## Phantom insertion\n")
     md.append("Targets 2 mm ahead of the final tip (x = 22 mm on the axis) and at probes p3, p1C, regularised over "
               "%.2f mm; estimates every 10th step against the difference to the 32x16x16 run; effectivity over the "
@@ -128,6 +134,76 @@ def phantom(a, md):
     plot_phantom(runs, os.path.join(a.out, "phantom_error_vs_step.png"))
     md.append("\nFigure: `phantom_error_vs_step.png` (the norm of the true error, of the signed estimate, and the bound "
               "against step, per target, on 8x4x4 and adaptive).")
+    return summary
+
+
+def phantom_summary(runs):
+    """Per mesh, over every target and estimated step whose true error norm is above 1 % of that
+    target's largest over the run: coverage, bound / true error (median), and the signed
+    estimate's effectivity (median over the moving components' steps)."""
+    ref = runs["32x16x16"]
+    out = []
+    for label in ("8x4x4", "adaptive"):
+        ratios, global_ratios, effs, covered = [], [], [], 0
+        for name, _ in PHANTOM_TARGETS:
+            pairs = []
+            for step, r in runs[label].items():
+                if step % 10 or step not in ref:
+                    continue
+                try:
+                    q = [float(r["%s_qoi_%s" % (name, c)]) for c in "xyz"]
+                    qr = [float(ref[step]["%s_qoi_%s" % (name, c)]) for c in "xyz"]
+                    est = [float(r["%s_err_%s" % (name, c)]) for c in "xyz"]
+                    b = float(r["%s_err_bound" % name])
+                except (KeyError, ValueError):
+                    continue
+                if any(math.isnan(v) for v in q + qr + est + [b]):
+                    continue
+                pairs.append(([x - y for x, y in zip(qr, q)], est, b))
+            if not pairs:
+                continue
+            big = max(math.hypot(*e) for e, _, _ in pairs)
+            bigk = [max(abs(e[k]) for e, _, _ in pairs) for k in range(3)]
+            for e, est, b in pairs:
+                n = math.hypot(*e)
+                if n <= 0.01 * big:
+                    continue
+                ratios.append(b / n)
+                covered += b >= n
+                for k in range(3):
+                    if bigk[k] > 0.1 * big and abs(e[k]) > 0.01 * bigk[k]:
+                        effs.append(est[k] / e[k])
+        if ratios:
+            out.append({"case": "phantom insertion, %s" % label, "compared": len(ratios),
+                        "covered_pct": 100.0 * covered / len(ratios), "bound_over_error_median": pct(ratios, 0.5),
+                        "bound_over_error_min": min(ratios), "bound_over_error_max": max(ratios),
+                        "effectivity_median": pct(effs, 0.5) if effs else float("nan")})
+    return out
+
+
+def summary_markdown(rows, phantom_rows):
+    """The study's summary per case: what doc/verification.md shows."""
+    lines = ["| case | compared | bound covers | bound / true error: median (min-max) | global product / true error: median "
+             "| signed effectivity: median (in [0.5, 2]) |", "|---|---|---|---|---|---|"]
+    for scene in SCENES:
+        name = scene[:-5]
+        sel = [r for r in rows if r["scene"] == name]
+        if not sel:
+            continue
+        # one row per target and mesh for the bound (the norm), per component for the estimate
+        cases = {(r["target"], r["mesh"]): r for r in sel}.values()
+        sharp = sorted(r["sharpness"] for r in cases)
+        gsharp = sorted(r["global_sharpness"] for r in cases)
+        effs = sorted(r["effectivity"] for r in sel)
+        lines.append("| static, %s (%d targets x 4 meshes) | %d | %d %% | %.2f (%.2f-%.2f) | %.1f | %.2f (%d of %d) |" % (
+            name, len({r["target"] for r in sel}), len(sharp), round(100 * sum(1 for r in cases if r["covered"]) / len(sharp)),
+            pct(sharp, 0.5), sharp[0], sharp[-1], pct(gsharp, 0.5), pct(effs, 0.5),
+            sum(1 for e in effs if 0.5 <= e <= 2), len(effs)))
+    for p in phantom_rows:
+        lines.append("| %s (steps x targets) | %d | %.0f %% | %.2f (%.2f-%.2f) | – | %.2f |" % (
+            p["case"], p["compared"], p["covered_pct"], p["bound_over_error_median"], p["bound_over_error_min"],
+            p["bound_over_error_max"], p["effectivity_median"]))
+    return "\n".join(lines) + "\n"
 
 
 def plot_phantom(runs, path):
@@ -190,14 +266,15 @@ def compare_max(a, md, path):
         s = run(a.tool, path, os.path.join(a.out, "compare", "max_%d" % budget), radius + [
             "adaptivity={estimator: spr, marking: max, theta: 0.3, max_level: 3, max_dofs: %d, every_steps: 1}" % budget])
         rows.append(("max rule, budget %d DOFs" % budget, s))
-    md.append("\n## Goal-oriented refinement against the max rule\n")
-    md.append("Static box with body force, interior target; the same true error is the goal run's. Reference as above.\n")
-    md.append("| refinement | DOFs | wall [s] | true error |Q_ref - Q_h| [m] | bound [m] |")
-    md.append("|---|---|---|---|---|")
+    table = ["| refinement | DOFs | wall [s] | true error \\|Q_ref − Q_h\\| [m] | bound [m] |", "|---|---|---|---|---|"]
     for label, s in rows:
         t = s["targets"]["interior"]
         err = math.sqrt(sum((r - h) ** 2 for r, h in zip(ref, t["qoi"])))
-        md.append("| %s | %d | %.2f | %.3e | %.3e |" % (label, s["tissue"]["dofs"], s["wall_time_s"], err, t["error_bound"]))
+        table.append("| %s | %d | %.2f | %.3e | %.3e |" % (label, s["tissue"]["dofs"], s["wall_time_s"], err, t["error_bound"]))
+    md.append("\n## Goal-oriented refinement against the max rule\n")
+    md.append("Static box with body force, interior target; the same true error is the goal run's. Reference as above.\n")
+    md.extend(table)
+    return "\n".join(table) + "\n"
 
 
 def main():
@@ -207,11 +284,15 @@ def main():
     ap.add_argument("--phantom", action="store_true", help="also the phantom insertion part")
     ap.add_argument("--compare-max", action="store_true", help="also goal-oriented against max-rule refinement")
     ap.add_argument("--only-phantom", action="store_true", help="the phantom insertion part alone (and its figure)")
+    ap.add_argument("--write-doc", action="store_true",
+                    help="with --phantom --compare-max: the summary and the comparison into doc/verification.md's "
+                         "block, the figure into doc/")
     a = ap.parse_args()
     if a.only_phantom:
         md = ["# Goal-oriented target-error estimate: the phantom insertion\n",
               "Command: `scripts/target_error_study.py --out %s --only-phantom`\n" % a.out]
-        phantom(a, md)
+        summary = phantom(a, md)
+        md.append("\n" + summary_markdown([], summary))
         with open(os.path.join(a.out, "target_error_phantom.md"), "w") as f:
             f.write("\n".join(md) + "\n")
         print("\n".join(md))
@@ -241,8 +322,9 @@ def main():
                      "max_level: 2, every_steps: 1}" % t]
             adaptive[t] = run(a.tool, path, os.path.join(a.out, name, "adaptive_" + t), sets)
         md.append("\n## %s\n" % name)
-        md.append("| target | mesh | DOFs | component | Q_h [m] | true error [m] | estimate [m] | effectivity | bound [m] | |e| [m] | covered |")
-        md.append("|---|---|---|---|---|---|---|---|---|---|---|")
+        md.append("| target | mesh | DOFs | component | Q_h [m] | true error [m] | estimate [m] | effectivity | bound [m] | |e| [m] | "
+                  "bound / |e| | global product / |e| | covered |")
+        md.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         for t in targets:
             q = {g: uniform[g]["targets"][t]["qoi"] for g in GRIDS}
             ref, rates = richardson(q[GRIDS[1]], q[GRIDS[2]], q[GRIDS[3]])
@@ -252,6 +334,7 @@ def main():
             for label, s in cases:
                 tt = s["targets"][t]
                 qh, est, bound = tt["qoi"], tt["error_estimate"], tt["error_bound"]
+                gbound = tt.get("error_bound_global", float("nan"))
                 err = [r - h for r, h in zip(ref, qh)]
                 enorm = math.sqrt(sum(e * e for e in err))
                 big = max(abs(e) for e in err)
@@ -263,18 +346,25 @@ def main():
                     rows.append({"scene": name, "target": t, "mesh": label, "dofs": dofs, "component": comp, "qoi": qh[k],
                                  "true_error": err[k], "estimate": est[k], "effectivity": eff, "bound": bound,
                                  "error_norm": enorm, "covered": bound >= enorm, "reference": ref[k],
-                                 "reference_bar": bar[k], "rate": rates[k]})
-                    md.append("| %s | %s | %d | %s | %.5e | %.3e | %.3e | %.2f | %.3e | %.3e | %s |" % (
-                        t, label, dofs, comp, qh[k], err[k], est[k], eff, bound, enorm, "yes" if bound >= enorm else "NO"))
+                                 "reference_bar": bar[k], "rate": rates[k], "sharpness": bound / enorm,
+                                 "global_sharpness": gbound / enorm})
+                    md.append("| %s | %s | %d | %s | %.5e | %.3e | %.3e | %.2f | %.3e | %.3e | %.1f | %.1f | %s |" % (
+                        t, label, dofs, comp, qh[k], err[k], est[k], eff, bound, enorm, bound / enorm, gbound / enorm,
+                        "yes" if bound >= enorm else "NO"))
     effs = [r["effectivity"] for r in rows]
     cov = sum(1 for r in rows if r["covered"])
     md.append("\n%d cases: effectivity %.2f .. %.2f (median %.2f), %d in [0.5, 2]; the bound covers the true error in %d "
               "of %d." % (len(rows), min(effs), max(effs), sorted(effs)[len(effs) // 2],
                           sum(1 for e in effs if 0.5 <= e <= 2), cov, len(rows)))
-    if a.compare_max:
-        compare_max(a, md, os.path.join(data, "box_body_force.yaml"))
-    if a.phantom:
-        phantom(a, md)
+    sharp = sorted(r["sharpness"] for r in rows)
+    gsharp = sorted(r["global_sharpness"] for r in rows)
+    md.append("Bound / true error norm: %.2f .. %.2f (median %.2f), %d in [1, 4]; the global product's: %.1f .. %.1f "
+              "(median %.1f)." % (sharp[0], sharp[-1], sharp[len(sharp) // 2], sum(1 for v in sharp if 1 <= v <= 4),
+                                  gsharp[0], gsharp[-1], gsharp[len(gsharp) // 2]))
+    compare = compare_max(a, md, os.path.join(data, "box_body_force.yaml")) if a.compare_max else None
+    phantom_rows = phantom(a, md) if a.phantom else []
+    summary = summary_markdown(rows, phantom_rows)
+    md.append("\n## Summary\n\n" + summary)
     os.makedirs(a.out, exist_ok=True)
     with open(os.path.join(a.out, "target_error_study.csv"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
@@ -283,6 +373,17 @@ def main():
     with open(os.path.join(a.out, "target_error_study.md"), "w") as f:
         f.write("\n".join(md) + "\n")
     print("\n".join(md))
+    if a.write_doc:
+        if not (a.phantom and a.compare_max):
+            sys.exit("target_error_study: --write-doc needs --phantom and --compare-max (the doc shows all three parts)")
+        doc = summary + "\nGoal-oriented refinement against the max rule on the energy estimate (body-force box, interior " \
+            "target; the goal run's tolerance is half its 8×4×4 bound, the max-rule runs stop at a DOF budget; one static " \
+            "step each):\n\n" + compare
+        write_doc_block("verification.md", "target_error_study", doc,
+                        "scripts/target_error_study.py --out %s --phantom --compare-max --write-doc"
+                        % os.path.relpath(a.out, paths.share_dir()))
+        shutil.copy(os.path.join(a.out, "phantom_error_vs_step.png"),
+                    os.path.join(paths.share_dir(), "doc", "target_error_phantom.png"))
     return 0
 
 
