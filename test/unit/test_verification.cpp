@@ -178,7 +178,8 @@ TEST(PhantomDynamics, AsyncFactorRefreshGivesTheSynchronousTrajectory) {
     long sync_factorizations = 0, async_factorizations = 0, waits = 0, iterations = 0;
   };
   // pace_ms: a sleep after each step, as a control loop's period (without it the 100 steps of
-  // this small scene can end before a delayed factor is ready, and nothing is swapped).
+  // this small scene can end before a delayed factor is ready, and nothing is swapped; at 1 ms
+  // a machine busy with other tests once left none ready in time).
   auto run = [&](bool async, int lag, double delay_ms, double pace_ms = 0) {
     SystemSolver::setRefreshDelayForTesting(delay_ms);
     Simulation sim(loadScene(scenePath("phantom_8x4x4.yaml"),
@@ -206,7 +207,7 @@ TEST(PhantomDynamics, AsyncFactorRefreshGivesTheSynchronousTrajectory) {
     }
     return d / scale;
   };
-  const Run sync = run(false, 4, 0), lag = run(true, 4, 0), late = run(true, 4, 20), ready = run(true, 0, 5, 1);
+  const Run sync = run(false, 4, 0), lag = run(true, 4, 0), late = run(true, 4, 20), ready = run(true, 0, 5, 3);
   ASSERT_GT(sync.sync_factorizations, 3);  // refreshes happen in this swing
   EXPECT_EQ(sync.async_factorizations, 0);
   // Async: no factorisation on the stepping thread (the first is made when the scene loads),
