@@ -137,29 +137,34 @@ def phantom(a, md):
     return summary
 
 
+def estimated_steps(runs, label, name):
+    """Target `name`'s estimated steps (every 10th) of run `label` that the reference run has, in
+    order: (step, Q_h, Q_ref, the signed estimate, the bound); steps with a missing or NaN value
+    left out."""
+    ref = runs["32x16x16"]
+    for step, r in sorted(runs[label].items()):
+        if step % 10 or step not in ref:
+            continue
+        try:
+            q = [float(r["%s_qoi_%s" % (name, c)]) for c in "xyz"]
+            qr = [float(ref[step]["%s_qoi_%s" % (name, c)]) for c in "xyz"]
+            est = [float(r["%s_err_%s" % (name, c)]) for c in "xyz"]
+            b = float(r["%s_err_bound" % name])
+        except (KeyError, ValueError):
+            continue
+        if not any(math.isnan(v) for v in q + qr + est + [b]):
+            yield step, q, qr, est, b
+
+
 def phantom_summary(runs):
     """Per mesh, over every target and estimated step whose true error norm is above 1 % of that
     target's largest over the run: coverage, bound / true error (median), and the signed
     estimate's effectivity (median over the moving components' steps)."""
-    ref = runs["32x16x16"]
     out = []
     for label in ("8x4x4", "adaptive"):
-        ratios, global_ratios, effs, covered = [], [], [], 0
+        ratios, effs, covered = [], [], 0
         for name, _ in PHANTOM_TARGETS:
-            pairs = []
-            for step, r in runs[label].items():
-                if step % 10 or step not in ref:
-                    continue
-                try:
-                    q = [float(r["%s_qoi_%s" % (name, c)]) for c in "xyz"]
-                    qr = [float(ref[step]["%s_qoi_%s" % (name, c)]) for c in "xyz"]
-                    est = [float(r["%s_err_%s" % (name, c)]) for c in "xyz"]
-                    b = float(r["%s_err_bound" % name])
-                except (KeyError, ValueError):
-                    continue
-                if any(math.isnan(v) for v in q + qr + est + [b]):
-                    continue
-                pairs.append(([x - y for x, y in zip(qr, q)], est, b))
+            pairs = [([x - y for x, y in zip(qr, q)], est, b) for _, q, qr, est, b in estimated_steps(runs, label, name)]
             if not pairs:
                 continue
             big = max(math.hypot(*e) for e, _, _ in pairs)
@@ -212,23 +217,11 @@ def plot_phantom(runs, path):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    ref = runs["32x16x16"]
     fig, axes = plt.subplots(1, len(PHANTOM_TARGETS), figsize=(15, 4.4), sharey=True)
     for ax, (name, _) in zip(axes, PHANTOM_TARGETS):
         for label, color in (("8x4x4", "C0"), ("adaptive", "C1")):
             steps, true, est, bound = [], [], [], []
-            for step, r in sorted(runs[label].items()):
-                if step % 10 or step not in ref:
-                    continue
-                try:
-                    q = [float(r["%s_qoi_%s" % (name, c)]) for c in "xyz"]
-                    qr = [float(ref[step]["%s_qoi_%s" % (name, c)]) for c in "xyz"]
-                    e = [float(r["%s_err_%s" % (name, c)]) for c in "xyz"]
-                    b = float(r["%s_err_bound" % name])
-                except (KeyError, ValueError):
-                    continue
-                if any(math.isnan(v) for v in q + qr + e + [b]):
-                    continue
+            for step, q, qr, e, b in estimated_steps(runs, label, name):
                 steps.append(step)
                 true.append(1e6 * math.dist(q, qr))
                 est.append(1e6 * math.sqrt(sum(x * x for x in e)))
