@@ -50,8 +50,8 @@ const TargetError& TargetErrorEstimator::of(int i, const TargetErrorState& s) {
     e = goalEstimate(s.energy.spr(), s.body.positions(), in.reference, *in.primal, Z, qois_[i], mesh);
   e.dual_iterations = iterations;
   // After a brain shift the estimate is of the change since; the shift's own error adds
-  // (errors add, so do their bounds). A shift scaled by target_shift prescribes that
-  // target's displacement: its error is in the load scale, not added.
+  // (errors add, so do their bounds); with target_shift, that of the scaled problem
+  // (underPrescribedShift).
   const VecX* ref = in.reference;
   if (e.valid && ref && i < static_cast<int>(shift_errors_.size()) && shift_errors_[i].valid) {
     e.estimate += shift_errors_[i].estimate;
