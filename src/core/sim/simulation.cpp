@@ -200,8 +200,8 @@ void Simulation::preStep() {
     std::vector<TargetError> errors = targetErrors();
     // target_shift scales the load to prescribe the length of that target's shift: the scale
     // carries the mesh's error along the shift, and every target's error is that of the
-    // scaled problem (doc/method.md "Error on target motion"); for that target, its error across the
-    // shift.
+    // scaled problem (doc/method.md "Error on target motion"); for that target, its error
+    // across the shift.
     if (t >= 0 && scene_.brain_shift->target_shift && total.target_displacement.norm() > 0) {
       const Vec3 d = total.target_displacement.normalized();
       for (int i = 0; i < static_cast<int>(errors.size()); ++i)
