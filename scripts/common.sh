@@ -68,6 +68,16 @@ build() {
   cmake --build "$BUILD" -j"$(nproc)" --target tests >&2
 }
 
+# Only the package's generated messages, services, action and reconfigure header in the
+# regular build's devel space (what test/tsan_ros compiles against).
+build_generated() {
+  if [ ! -f "$BUILD/CMakeCache.txt" ]; then
+    cmake -S "$ROOT" -B "$BUILD" -DCMAKE_BUILD_TYPE=Release -DCATKIN_DEVEL_PREFIX="$DEVEL" \
+      -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
+  fi
+  cmake --build "$BUILD" -j"$(nproc)" --target needle_sim_generate_messages_cpp needle_sim_gencfg >&2
+}
+
 # The hardening build shared by sanitize.sh and fuzz.sh (issue #8): clang, which compiles this
 # code about 2.5 times faster than g++ under the sanitizers, ASan + UBSan on everything, the
 # libFuzzer targets beside the unit tests. A folder configured otherwise (an older g++ ASan
@@ -125,3 +135,25 @@ PY
 }
 
 NEEDLE_SIM="$DEVEL/lib/needle_sim/needle_sim"
+
+# Runs a command beside a roscore of its own (a free port, logs in a temporary ROS_HOME),
+# stopped afterwards: the sanitizer builds' node-threads test (test/rostest/test_node_threads.cpp),
+# whose binary is run directly rather than through rostest (which would look for it in the
+# regular devel space too).
+with_roscore() {
+  local port home pid rc=0
+  port=$(/usr/bin/python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+  home="$(mktemp -d /tmp/needle_sim_roscore.XXXXXX)"
+  ROS_HOME="$home" ROS_MASTER_URI="http://127.0.0.1:$port" roscore -p "$port" >"$home/roscore.log" 2>&1 &
+  pid=$!
+  local i
+  for i in $(seq 100); do
+    ROS_MASTER_URI="http://127.0.0.1:$port" rosparam get /run_id >/dev/null 2>&1 && break
+    sleep 0.2
+  done
+  ROS_HOME="$home" ROS_MASTER_URI="http://127.0.0.1:$port" "$@" || rc=$?
+  kill -INT "$pid" 2>/dev/null || true
+  wait "$pid" 2>/dev/null || true
+  rm -rf "$home"
+  return $rc
+}

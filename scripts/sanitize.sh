@@ -2,7 +2,8 @@
 # AddressSanitizer + UndefinedBehaviorSanitizer build of the package in ./build/asan (clang,
 # shared with scripts/fuzz.sh), then the unit tests (gtest; the rostests stay in the regular
 # build) and the fuzz corpus replays under it. Exits non-zero on any test failure or
-# sanitizer report (issue #8).
+# sanitizer report (issue #8). Then the node's threads (issue #39): the ROS layer in the
+# process of test/rostest/test_node_threads.cpp, beside a roscore of its own.
 #   bash scripts/sanitize.sh                 # everything
 #   bash scripts/sanitize.sh -R test_scene   # extra arguments go to ctest
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
@@ -12,7 +13,8 @@ BUILD="$SANITIZED_BUILD"
 # stay in the regular build).
 UNIT=(test_fem test_solver test_verification test_scene test_beam test_interaction test_spr test_refinement
       test_adaptivity test_sim_parts test_immersed test_prediction test_cli test_command_guard test_pieces test_goal_estimate test_constraint_solve test_calibration)
-cmake --build "$BUILD" -j"$(nproc)" --target "${UNIT[@]}" fuzz_scene_replay fuzz_mesh_replay needle_sim_tool tutorial_00_library >&2
+cmake --build "$BUILD" -j"$(nproc)" --target "${UNIT[@]}" fuzz_scene_replay fuzz_mesh_replay needle_sim_tool tutorial_00_library \
+  test_node_threads >&2
 cd "$BUILD"
 # Leaks are reported too; halt on the first UB report. OpenBLAS's threads are kept at one.
 export ASAN_OPTIONS="detect_leaks=1:abort_on_error=0:strict_string_checks=1"
@@ -26,3 +28,4 @@ export OPENBLAS_NUM_THREADS=1 OMP_THREAD_LIMIT=1
 # python_package is Python alone (its node modules need the generated messages, which this
 # build does not make): the regular build runs it.
 ctest --output-on-failure -j"$(getconf _NPROCESSORS_ONLN)" -E "rostest|stability_sweep|soak|rviz_view|launch_sequence|test_dbs|python_package" "$@"
+with_roscore "$BUILD/devel/lib/needle_sim/test_node_threads"

@@ -4,9 +4,11 @@
 # the stepping thread beside background work (#18): the factor refreshed on a background
 # thread (test_verification's async trajectories, test_solver), mesh changes built in the
 # background and simulations copied while a build is pending (test_adaptivity,
-# test_prediction). Exits non-zero on any failure or data-race report.
+# test_prediction); then the ROS layer's threads (issue #39): test/tsan_ros builds src/ros and
+# test/rostest/test_node_threads.cpp with -fsanitize=thread against this core, and runs the test
+# beside a roscore of its own. Exits non-zero on any failure or data-race report.
 #   bash scripts/tsan.sh                  # the async tests
-#   bash scripts/tsan.sh -R test_solver   # extra arguments go to ctest
+#   bash scripts/tsan.sh -R test_solver   # extra arguments go to ctest (the node-threads test runs too)
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 PACKAGES+=(clang libclang-rt-14-dev)
 install_missing
@@ -23,3 +25,16 @@ export TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$ROOT/
 export OPENBLAS_NUM_THREADS=1 OMP_THREAD_LIMIT=1
 check_core_build "$TSAN_BUILD"
 ctest --output-on-failure -j1 -R "$(IFS='|'; echo "${TESTS[*]}")" "$@"
+
+# The ROS layer under ThreadSanitizer. Its generated messages and reconfigure header are the
+# regular build's (scripts/test.sh, CI's first phase, made them; made here if missing).
+if [ ! -f "$DEVEL/include/needle_sim/SimStatus.h" ] || [ ! -f "$DEVEL/include/needle_sim/LimitsConfig.h" ]; then
+  build_generated
+fi
+TSAN_ROS="${TSAN_BUILD}_ros"
+CC=clang CXX=clang++ cmake -S "$ROOT/test/tsan_ros" -B "$TSAN_ROS" -DNEEDLE_SIM_CORE_BUILD="$TSAN_BUILD" \
+  -DNEEDLE_SIM_GENERATED="$DEVEL/include" -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
+cmake --build "$TSAN_ROS" -j"$(getconf _NPROCESSORS_ONLN)" >&2
+# ROS's libraries are not instrumented: their own accesses are not checked
+# (ignore_noninstrumented_modules), our code against them is.
+TSAN_OPTIONS="$TSAN_OPTIONS:ignore_noninstrumented_modules=1" with_roscore "$TSAN_ROS/test_node_threads"

@@ -136,6 +136,9 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   if (!(p.predict_sample_period > 0) || !std::isfinite(p.predict_sample_period))
     throw InputError("", "~predict_sample_period", "must be > 0");
   if (p.predict_max_steps < 1) throw InputError("", "~predict_max_steps", "must be >= 1");
+  pnh.param("predict_max_wall", p.predict_max_wall, p.predict_max_wall);
+  if (!(p.predict_max_wall >= 0) || !std::isfinite(p.predict_max_wall))
+    throw InputError("", "~predict_max_wall", "must be >= 0 and finite (0: no limit)");
   pnh.param("predict_max_dt", p.predict_max_dt, p.predict_max_dt);
   if (!(p.predict_max_dt >= 0) || !std::isfinite(p.predict_max_dt))
     throw InputError("", "~predict_max_dt", "must be >= 0 and finite (0: 10 times the scene's dt)");

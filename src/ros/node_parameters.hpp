@@ -52,6 +52,9 @@ struct NodeParameters {
   // 0 (the default): 10 times the scene's dt (resolved once the scene is loaded).
   double predict_max_dt = 0;
   int predict_max_steps = 100000;
+  // ~predict_max_wall [s]: the wall time one ~predict or ~steer request may take (0: no limit);
+  // a request over it is stopped and answered unsuccessful.
+  double predict_max_wall = 5.0;
   double insert_speed = 0.005;          // [m/s] default speed of ~insert goals
   double target_error_period = 0.2;     // [s] goal-oriented error bound of the targets this often (0: off)
   double deadline_warn_fraction = 0.05;  // diagnostics WARN above this share of late steps / skipped ticks

@@ -2,6 +2,11 @@
 // prediction runs on a copy of the simulation, the live run goes on meanwhile).
 #include <needle_sim/SimStatus.h>
 
+#include <pthread.h>
+#include <sched.h>
+
+#include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <limits>
@@ -9,6 +14,7 @@
 #include "conversions.hpp"
 #include "display_outputs.hpp"
 #include "insert_action.hpp"
+#include "needle_sim/core/background_priority.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/ros/simulator_ros.hpp"
 #include "needle_sim/sim/prediction.hpp"
@@ -38,6 +44,7 @@ bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Respo
     return true;
   }
   if (action_) action_->abort("the simulation was reset");
+  ++predict_epoch_;  // a prediction of the state before is cancelled
   // The command guard's and the schedule's counters are kept: they count over the node's life.
   res.success = true;
   res.message = "reset to the initial state of scene '" + scene_.name + "'";
@@ -60,8 +67,45 @@ bool SimulatorRos::onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::
   return true;
 }
 
+PredictionBudget SimulatorRos::predictionBudget() {
+  // The predictions' thread (its own spinner) gives way to every other thread of the node:
+  // the live loop never waits for a prediction. SCHED_IDLE: any other thread that wakes takes
+  // its core at once (at nice 19 a woken stepping thread could still wait out the
+  // prediction's slice); where the policy is refused, nice 19.
+  static thread_local bool lowered = false;
+  if (!lowered) {
+    nameThisThread("ns_predict");
+    sched_param none{};
+    if (pthread_setschedparam(pthread_self(), SCHED_IDLE, &none) != 0) lowerThisThreadPriority(19);
+    lowered = true;
+  }
+  PredictionBudget b;
+  if (params_->predict_max_wall > 0) {
+    b.deadline = std::chrono::steady_clock::now() + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                                        std::chrono::duration<double>(params_->predict_max_wall));
+    char buf[64];
+    std::snprintf(buf, sizeof buf, "~predict_max_wall = %g s", params_->predict_max_wall);
+    b.deadline_name = buf;
+  }
+  const long epoch = predict_epoch_.load();
+  b.cancelled = [this, epoch] { return predict_epoch_.load() != epoch; };
+  return b;
+}
+
+void SimulatorRos::predictionDone(double wall_s, const char* outcome) {
+  std::lock_guard<std::mutex> lk(predict_cost_mutex_);
+  PredictionCost& c = predict_cost_;
+  ++c.requests;
+  if (std::string(outcome) == "stopped") ++c.stopped;
+  if (std::string(outcome) == "cancelled") ++c.cancelled;
+  c.last_s = wall_s;
+  c.max_s = std::max(c.max_s, wall_s);
+  c.total_s += wall_s;
+}
+
 bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_sim::PredictInsertion::Response& res) {
   const auto w0 = ros::WallTime::now();
+  const PredictionBudget budget = predictionBudget();  // from the request's arrival
   res.success = false;
   res.final_target_tip_distance = std::numeric_limits<double>::quiet_NaN();
   res.max_tip_speed = res.max_tip_speed_time = std::numeric_limits<double>::quiet_NaN();
@@ -104,11 +148,19 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
   }
   Prediction p;
   try {
-    p = predictInsertion(*snapshot, plan, params_->predict_max_steps);
+    p = predictInsertion(*snapshot, plan, params_->predict_max_steps, {}, budget);
   } catch (const InputError& e) {
     return refuse(e.what());
   } catch (const NumericalError& e) {
     res.message = std::string("the predicted run failed: ") + e.what();
+    res.compute_time = (ros::WallTime::now() - w0).toSec();
+    predictionDone(res.compute_time, "failed");
+    ROS_WARN("needle_sim: predict: %s", res.message.c_str());
+    return true;
+  } catch (const PredictionStopped& e) {
+    res.message = std::string("the prediction was ") + e.what();
+    res.compute_time = (ros::WallTime::now() - w0).toSec();
+    predictionDone(res.compute_time, res.message.find("cancelled") != std::string::npos ? "cancelled" : "stopped");
     ROS_WARN("needle_sim: predict: %s", res.message.c_str());
     return true;
   }
@@ -128,6 +180,7 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
   res.steps = p.steps;
   res.max_dofs = p.max_dofs;
   res.compute_time = (ros::WallTime::now() - w0).toSec();
+  predictionDone(res.compute_time, "ok");
   res.success = true;
   char buf[200];
   std::snprintf(buf, sizeof buf, "predicted %.3g s in %d steps of %.3g s (%.3f s wall); largest tip speed %.3g m/s at %.3g s",

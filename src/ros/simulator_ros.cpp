@@ -80,7 +80,10 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   updater_->setHardwareID("needle_sim/" + scene_.name);
   updater_->add("simulation", this, &SimulatorRos::diagnose);
   updater_->add("tip_speed", this, &SimulatorRos::diagnoseTipSpeed);
-  diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) { updater_->update(); });
+  diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) {
+    std::lock_guard<std::mutex> lk(diag_mutex_);
+    if (!diag_stopped_) updater_->update();
+  });
   subscribeCommands();
   reset_srv_ = pnh_.advertiseService("reset", &SimulatorRos::onReset, this);
   set_target_srv_ = pnh_.advertiseService("set_target", &SimulatorRos::onSetTarget, this);
@@ -122,10 +125,15 @@ SimulatorRos::~SimulatorRos() {
   reset_srv_.shutdown();
   set_target_srv_.shutdown();
   for (auto& sub : command_subs_) sub.shutdown();
+  {
+    std::lock_guard<std::mutex> lk(diag_mutex_);
+    diag_stopped_ = true;
+  }
   diag_timer_.stop();
   predict_srv_.shutdown();
   steer_srv_.shutdown();
-  if (predict_spinner_) predict_spinner_->stop();  // waits for a prediction under way
+  ++predict_epoch_;  // a prediction under way stops at its next step
+  if (predict_spinner_) predict_spinner_->stop();  // waits for it
   timer_.stop();
   reconfigure_.reset();
   if (action_) action_->shutdown();
@@ -141,9 +149,11 @@ SimulatorRos::~SimulatorRos() {
   }
   error_cv_.notify_all();
   if (error_thread_.joinable()) error_thread_.join();
+  // The output thread runs queued jobs that hold the display and the action's goals: it sends
+  // what is queued and stops before they go (found by ThreadSanitizer: the node-threads test).
+  out_.reset();
   action_.reset();
   display_.reset();
-  out_.reset();  // sends what is queued, then stops
 }
 
 void SimulatorRos::load() {

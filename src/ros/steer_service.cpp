@@ -19,6 +19,7 @@ namespace needle_sim {
 bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::SteerToTarget::Response& res,
                            const std::string& caller) {
   const auto w0 = ros::WallTime::now();
+  const PredictionBudget budget = predictionBudget();  // from the request's arrival
   const double nan = std::numeric_limits<double>::quiet_NaN();
   res.success = res.reached = res.executed = false;
   res.roll = res.flip_depth = res.advance = res.predicted_distance = res.curvature = nan;
@@ -30,6 +31,7 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
   const int needle = needleIndex(req.needle);
   if (needle < 0) return refuse("needle: no needle named '" + req.needle + "'");
   SteeringRequest q;
+  q.budget = budget;  // for all its predictions together
   q.needle = needle;
   auto number = [&](const char* key, double v, double fallback, double& out) {
     if (!std::isfinite(v) || v < 0) return std::string(key) + ": must be finite and >= 0 (0: the default)";
@@ -82,9 +84,17 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
     return refuse(e.what());
   } catch (const NumericalError& e) {
     res.message = std::string("a predicted run failed: ") + e.what();
+    predictionDone((ros::WallTime::now() - w0).toSec(), "failed");
+    ROS_WARN("needle_sim: steer: %s", res.message.c_str());
+    return true;
+  } catch (const PredictionStopped& e) {
+    res.message = std::string("planning stopped: a prediction was ") + e.what();
+    predictionDone((ros::WallTime::now() - w0).toSec(),
+                   res.message.find("cancelled") != std::string::npos ? "cancelled" : "stopped");
     ROS_WARN("needle_sim: steer: %s", res.message.c_str());
     return true;
   }
+  predictionDone((ros::WallTime::now() - w0).toSec(), "ok");
   res.plan.header.frame_id = params_->tissue_frame;
   res.plan.header.stamp = ros::Time::now();
   std::vector<PlanWaypoint> waypoints;

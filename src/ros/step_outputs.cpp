@@ -152,6 +152,16 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   const Percentiles sp = percentiles(std::move(recent));
   stat.add("step_ms_median", sp.median);  // of the last kStepWindow steps
   stat.add("step_ms_p999", sp.p999);
+  // ~predict and ~steer requests: how many, how many stopped by ~predict_max_wall or
+  // cancelled, and their wall time (each on the predictions' own low-priority thread).
+  std::lock_guard<std::mutex> pk(predict_cost_mutex_);
+  const PredictionCost& c = predict_cost_;
+  stat.add("predictions", c.requests);
+  stat.add("predictions_stopped", c.stopped);
+  stat.add("predictions_cancelled", c.cancelled);
+  stat.add("prediction_wall_s_last", c.last_s);
+  stat.add("prediction_wall_s_max", c.max_s);
+  stat.add("prediction_wall_s_total", c.total_s);
 }
 
 }  // namespace needle_sim

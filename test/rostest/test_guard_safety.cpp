@@ -26,9 +26,15 @@
 #include <std_srvs/Trigger.h>
 
 #include <Eigen/Geometry>
+#include <sched.h>
+
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <limits>
+#include <sstream>
 #include <map>
 #include <mutex>
 #include <string>
@@ -111,6 +117,9 @@ using needle_sim_test::simWait;
 
 bool resetAndWait(Node& n) {
   std_srvs::Trigger t;
+  // The count must be far enough from 0 for the restart to be seen (a reset just after
+  // another, as one test after another, would restart from a count the poll may miss).
+  if (!waitFor([&] { return n.status().step >= 50; }, 30.0)) return false;
   const uint64_t before = n.status().step;
   return ros::service::call("needle_sim/reset", t) && t.response.success &&
          waitFor([&] { return n.status().step < before && n.status().step > 0; }, 10.0);
@@ -355,17 +364,23 @@ TEST_F(GuardSafety, TheTipsSnapBackIsPredictedWarnedAndInDiagnostics) {
   EXPECT_GT(std::stoul(n.diagValue("tip_speed", "needle/tip_speed_over_limit_steps")), 0u);
 }
 
+// A ~predict request: the base 5 mm in from rest in `over` seconds, at time step dt.
+needle_sim::PredictInsertion advanceBy5mm(double over, double dt) {
+  needle_sim::PredictInsertion p;
+  p.request.trajectory.header.frame_id = "tissue";
+  needle_sim::NeedleWaypoint w;
+  w.time_from_start = ros::Duration(over);
+  w.pose = pose(kBaseX + 0.005).pose;
+  p.request.trajectory.waypoints.push_back(w);
+  p.request.dt = dt;
+  return p;
+}
+
 // 4. ~predict's time step is bounded by ~predict_max_dt (10 x the scene's 1 ms).
 TEST_F(GuardSafety, PredictRefusesATimeStepAboveTheMaximum) {
   Node& n = *node_;
   ASSERT_TRUE(resetAndWait(n));
-  needle_sim::PredictInsertion p;
-  p.request.trajectory.header.frame_id = "tissue";
-  needle_sim::NeedleWaypoint w;
-  w.time_from_start = ros::Duration(0.5);
-  w.pose = pose(kBaseX + 0.005).pose;
-  p.request.trajectory.waypoints.push_back(w);
-  p.request.dt = 1.0;
+  needle_sim::PredictInsertion p = advanceBy5mm(0.5, 1.0);
   ASSERT_TRUE(ros::service::call("needle_sim/predict", p));
   EXPECT_FALSE(p.response.success);
   EXPECT_NE(p.response.message.find("~predict_max_dt = 0.01"), std::string::npos) << p.response.message;
@@ -375,6 +390,56 @@ TEST_F(GuardSafety, PredictRefusesATimeStepAboveTheMaximum) {
   EXPECT_TRUE(p.response.success) << p.response.message;
   EXPECT_GT(p.response.max_tip_speed, 0.009);
   EXPECT_LT(p.response.max_tip_speed, 0.02);
+}
+
+// 5. (#40) A prediction longer than ~predict_max_wall (2 s here) is stopped and answered
+//    unsuccessful, naming the parameter; it ran on a thread below every other of the node
+//    (SCHED_IDLE); diagnostics count it.
+namespace {
+// Field `field` of /proc/PID/task/TID/stat (proc(5): 19 nice, 41 policy) of the thread named
+// `name` in any process (-100: none).
+int threadStat(const std::string& name, int field) {
+  namespace fs = std::filesystem;
+  for (const auto& proc : fs::directory_iterator("/proc")) {
+    std::error_code ec;
+    if (!fs::is_directory(proc.path() / "task", ec)) continue;
+    for (const auto& task : fs::directory_iterator(proc.path() / "task", ec)) {
+      std::ifstream comm(task.path() / "comm");
+      std::string c;
+      if (!std::getline(comm, c) || c != name) continue;
+      std::ifstream statf(task.path() / "stat");
+      std::string stat((std::istreambuf_iterator<char>(statf)), std::istreambuf_iterator<char>());
+      std::istringstream rest(stat.substr(stat.rfind(')') + 2));  // fields from 3 (state) on
+      std::string f;
+      for (int i = 3; i <= field && rest >> f; ++i)
+        if (i == field) return std::stoi(f);
+    }
+  }
+  return -100;
+}
+}  // namespace
+
+TEST_F(GuardSafety, APredictionStopsAtItsWallBudgetOnALowPriorityThread) {
+  Node& n = *node_;
+  ASSERT_TRUE(resetAndWait(n));
+  needle_sim::PredictInsertion p = advanceBy5mm(99.0, 0.001);  // 99,000 steps: about 20 s of work
+  const ros::WallTime t0 = ros::WallTime::now();
+  ASSERT_TRUE(ros::service::call("needle_sim/predict", p));
+  const double wall = (ros::WallTime::now() - t0).toSec();
+  EXPECT_FALSE(p.response.success);
+  EXPECT_NE(p.response.message.find("stopped by ~predict_max_wall = 2 s"), std::string::npos) << p.response.message;
+  EXPECT_TRUE(p.response.time.empty());
+  EXPECT_GE(p.response.compute_time, 2.0);
+  EXPECT_LT(wall, 6.0) << "the budget did not stop it";
+  std::printf("stopped: %s (%.2f s)\n", p.response.message.c_str(), wall);
+  EXPECT_EQ(threadStat("ns_predict", 41), SCHED_IDLE) << "the predictions' thread's scheduling policy";
+  EXPECT_TRUE(waitFor(
+      [&] {
+        const std::string v = n.diagValue("simulation", "predictions_stopped");
+        return !v.empty() && std::stoul(v) >= 1;
+      },
+      10.0))
+      << "diagnostics do not count the stopped prediction";
 }
 
 int main(int argc, char** argv) {

@@ -6,6 +6,8 @@
 // bad plans are refused before any work.
 #include <gtest/gtest.h>
 
+#include <chrono>
+
 #include <cmath>
 #include <limits>
 #include <string>
@@ -290,4 +292,53 @@ TEST(Prediction, ResumedFromACheckpointItIsTheWholePrediction) {
     EXPECT_EQ(e.key(), "predict.resume") << e.what();
   }
   EXPECT_EQ(sim.stepIndex(), 300);
+}
+
+// A prediction's budget (the node's ~predict_max_wall, ~reset and shutdown): checked before
+// every step, it stops the prediction with PredictionStopped naming why, how long it ran and
+// how far the plan got; the live simulation is untouched.
+TEST(Prediction, ItsBudgetStopsItBeforeAnyStepAfterTheDeadlineOrWhenCancelled) {
+  Simulation sim(loadScene(kScenes + "phantom_insertion_8x4x4.yaml"));
+  for (int k = 0; k < 5; ++k) sim.step();
+  const double live_time = sim.time();
+  const InsertionPlan plan = straightPlan(sim, 0.02, 20.0, 0.0, 0.001);  // 20,000 steps: seconds of work
+  // Cancelled at the 4th check: exactly 3 steps were run.
+  int checks = 0;
+  PredictionBudget cancel;
+  cancel.cancelled = [&checks] { return ++checks == 4; };
+  try {
+    predictInsertion(sim, plan, 1000000, {}, cancel);
+    ADD_FAILURE() << "not cancelled";
+  } catch (const PredictionStopped& e) {
+    const std::string m = e.what();
+    EXPECT_NE(m.find("cancelled"), std::string::npos) << m;
+    EXPECT_NE(m.find("(step 3 of 20000)"), std::string::npos) << m;
+  }
+  EXPECT_EQ(checks, 4);
+  // A deadline already past: not one step.
+  PredictionBudget past;
+  past.deadline = std::chrono::steady_clock::now();
+  past.deadline_name = "the test's deadline";
+  try {
+    predictInsertion(sim, plan, 1000000, {}, past);
+    ADD_FAILURE() << "not stopped";
+  } catch (const PredictionStopped& e) {
+    const std::string m = e.what();
+    EXPECT_NE(m.find("stopped by the test's deadline"), std::string::npos) << m;
+    EXPECT_NE(m.find("(step 0 of 20000)"), std::string::npos) << m;
+  }
+  // 50 ms from now: stopped part way, within a step or so of the deadline.
+  PredictionBudget soon;
+  soon.deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(50);
+  soon.deadline_name = "50 ms";
+  const auto t0 = std::chrono::steady_clock::now();
+  EXPECT_THROW(predictInsertion(sim, plan, 1000000, {}, soon), PredictionStopped);
+  const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  EXPECT_GE(ms, 50.0);
+  EXPECT_LT(ms, 1000.0);  // the whole plan takes seconds
+  EXPECT_EQ(sim.time(), live_time);
+  // Without a budget the same plan is predicted (as far as 100 steps, to keep it short).
+  InsertionPlan shorter = plan;
+  shorter.duration = 0.1;
+  EXPECT_EQ(predictInsertion(sim, shorter, 1000000, {}, {}).steps, 100);
 }

@@ -66,3 +66,20 @@ TEST(Steering, RefusesWhatItCannotPlan) {
   // A request whose predictions would run too long is refused before it runs (1 um/s: 18,000 s).
   EXPECT_EQ(key(bevel, Vec3(0.018, 0.01, 0.01), 1e-6, 8, 100000).rfind("predict.", 0), 0u);
 }
+
+// One budget for the whole plan (the node's ~steer under ~predict_max_wall): every
+// prediction of the search checks it.
+TEST(Steering, ItsBudgetStopsThePlanning) {
+  Simulation sim(loadScene(kPhantom, {"needle.bevel.angle=0.5235987755982988"}));
+  SteeringRequest req;
+  req.target = Vec3(0.018, 0.0099, 0.0100);
+  int checks = 0;
+  req.budget.cancelled = [&checks] { return ++checks > 50; };  // within the first prediction
+  try {
+    planSteering(sim, req);
+    ADD_FAILURE() << "not stopped";
+  } catch (const PredictionStopped& e) {
+    EXPECT_NE(std::string(e.what()).find("cancelled"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(checks, 51);
+}

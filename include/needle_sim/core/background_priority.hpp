@@ -16,8 +16,10 @@ namespace needle_sim {
 // deployment can see which of the simulator's threads uses what.
 inline void nameThisThread(const char* name) { (void)pthread_setname_np(pthread_self(), name); }
 
-inline void lowerThisThreadPriority() {
-  (void)setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), 10);
+// nice: 10 for work the live loop waits for (refreshes, mesh changes); 19 for work it does not
+// (the node's predictions and plans).
+inline void lowerThisThreadPriority(int nice = 10) {
+  (void)setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), nice);
 }
 
 }  // namespace needle_sim

@@ -41,6 +41,7 @@
 #include "needle_sim/sim/command_pipeline.hpp"
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/observables.hpp"
+#include "needle_sim/sim/prediction.hpp"
 #include "needle_sim/sim/realtime_schedule.hpp"
 #include "needle_sim/core/run_statistics.hpp"
 #include "needle_sim/sim/simulation.hpp"
@@ -179,8 +180,22 @@ class SimulatorRos {
   ros::Publisher status_pub_, target_pub_, target_state_pub_;
   std::vector<ros::Publisher> wrench_pubs_;
   std::unique_ptr<diagnostic_updater::Updater> updater_;
+  // The diagnostics timer's callback runs under this and not once the node goes (a stopped
+  // timer's callback may still be under way on a spinner thread).
+  std::mutex diag_mutex_;
+  bool diag_stopped_ = false;
   ros::ServiceServer reset_srv_, set_target_srv_, predict_srv_, steer_srv_;
   ros::CallbackQueue predict_queue_;  // predictions (~predict, ~steer) take their own thread
+  // Predictions and plans (services.cpp): their budget (~predict_max_wall; cancelled when the
+  // epoch moves: ~reset, the node's end), and what they cost (diagnostics).
+  PredictionBudget predictionBudget();
+  void predictionDone(double wall_s, const char* outcome);  // "ok", "stopped", "cancelled", "failed"
+  std::atomic<long> predict_epoch_{0};
+  std::mutex predict_cost_mutex_;
+  struct PredictionCost {
+    long requests = 0, stopped = 0, cancelled = 0;
+    double last_s = 0, max_s = 0, total_s = 0;
+  } predict_cost_;
   std::unique_ptr<ros::AsyncSpinner> predict_spinner_;
   std::thread thread_;
   std::mutex error_mutex_;  // error_job_, errors_latest_, errors_step_, error_busy_, error_stop_

@@ -6,7 +6,10 @@
 // prediction starts from exactly its state; it may step with a coarser time step than the
 // live run (implicit Euler is unconditionally stable), which is what makes it faster than
 // real time; `needle_sim predict --compare` reports what the coarser step costs in accuracy.
+#include <chrono>
+#include <functional>
 #include <memory>
+#include <stdexcept>
 #include <string>
 #include <utility>
 #include <vector>
@@ -75,11 +78,29 @@ struct PredictionReuse {
   std::vector<double> checkpoint_times;
 };
 
+// Stopping a prediction before its end (the node: ~predict_max_wall, its shutdown, ~reset):
+// checked before every step; a prediction stopped so throws PredictionStopped. A planner
+// making several predictions (planSteering) passes one budget to all of them.
+struct PredictionBudget {
+  std::chrono::steady_clock::time_point since = std::chrono::steady_clock::now();  // the request's start
+  std::chrono::steady_clock::time_point deadline = std::chrono::steady_clock::time_point::max();
+  std::string deadline_name;              // what set the deadline, for the message (e.g. "~predict_max_wall = 5 s")
+  std::function<bool()> cancelled;        // true: stop now (may be empty)
+};
+
+// A prediction stopped by its budget: the message says why, after how much wall time and how
+// far the plan had been simulated.
+class PredictionStopped : public std::runtime_error {
+ public:
+  explicit PredictionStopped(const std::string& what) : std::runtime_error(what) {}
+};
+
 // Throws InputError (key "predict.<field>") for a plan that cannot run (a needle out of
 // range, non-finite or non-increasing waypoint times, non-finite poses, a negative dt,
 // nothing to simulate, more than max_steps steps), before any work; NumericalError when the
-// predicted run fails (the live simulation is unaffected either way).
+// predicted run fails; PredictionStopped when its budget runs out or it is cancelled (the
+// live simulation is unaffected in every case).
 Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, long max_steps = 1000000,
-                            const PredictionReuse& reuse = {});
+                            const PredictionReuse& reuse = {}, const PredictionBudget& budget = {});
 
 }  // namespace needle_sim

@@ -25,6 +25,7 @@ struct SteeringRequest {
   double tolerance = 2e-4;     // a plan whose predicted tip-target distance is below this is done [m]
   int max_predictions = 8;          // 1 ... 100
   long max_steps = 1000000;         // per prediction (a longer one is refused: InputError)
+  PredictionBudget budget;          // for the whole plan: every prediction's (PredictionStopped)
 };
 
 // One prediction of the search.

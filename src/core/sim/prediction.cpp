@@ -97,7 +97,7 @@ void requireSameBeginning(const Simulation& live, const InsertionPlan& plan, dou
 }  // namespace
 
 Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, long max_steps,
-                            const PredictionReuse& reuse) {
+                            const PredictionReuse& reuse, const PredictionBudget& budget) {
   double dt = 0, duration = 0;
   const long steps = requireRunnable(live, plan, max_steps, dt, duration);
   const PredictionCheckpoint* cp = reuse.resume;
@@ -136,6 +136,14 @@ Prediction predictInsertion(const Simulation& live, const InsertionPlan& plan, l
   size_t w = 0;
   const long first = cp ? cp->step + 1 : 1;
   for (long k = first; k <= steps; ++k) {
+    const bool cancelled = budget.cancelled && budget.cancelled();
+    if (cancelled || steadyNow() >= budget.deadline) {
+      std::ostringstream m;
+      m << (cancelled ? "cancelled" : "stopped by " + budget.deadline_name) << " after " << msSince(budget.since) / 1000
+        << " s of wall time, at " << sim.time() - now << " s of the plan's " << duration << " s (step " << k - 1
+        << " of " << steps << ")";
+      throw PredictionStopped(m.str());
+    }
     const StepStats& st = sim.step();  // NumericalError propagates: the caller reports it
     out.totals.accumulate(st);
     out.mesh_changes += st.mesh_changed;

@@ -103,7 +103,7 @@ SteeringPlan planSteering(const Simulation& live, const SteeringRequest& req) {
     const double spacing = std::max(A / 16, 10 * (req.dt > 0 ? req.dt : live.dt()) * req.speed) / req.speed;
     for (double tc = turned + spacing; tc < leg_end; tc += spacing)
       if (!reuse.resume || tc > reuse.resume->t) reuse.checkpoint_times.push_back(tc);
-    Prediction p = predictInsertion(live, plan, req.max_steps, reuse);
+    Prediction p = predictInsertion(live, plan, req.max_steps, reuse, req.budget);
     const double resumed_at = reuse.resume ? reuse.resume->t : 0.0;  // before `checkpoints` grows
     for (auto& c : p.checkpoints) checkpoints.push_back(std::move(c));
     std::sort(checkpoints.begin(), checkpoints.end(), [](const auto& a, const auto& b) { return a.t < b.t; });

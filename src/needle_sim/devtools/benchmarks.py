@@ -313,6 +313,39 @@ def node_overhead():
                                              "scripts/node_overhead.py --seconds 4"]
 
 
+def node_prediction():
+    """The node's live loop with and without a long ~predict beside it: the adaptive phantom,
+    500 Hz poses, a 99,000-step prediction 0.2 s in (stopped by ~predict_max_wall, 5 s)."""
+    rows = []
+    scene = os.path.join(root(), "config/scenes/phantom_insertion_adaptive.yaml")
+    for label, extra in (("none", []), ("99,000 steps at 1 ms", ["--predict-steps", "99000"])):
+        launch = subprocess.Popen(["roslaunch", "needle_sim", "sim.launch", "scene:=" + scene, "command_source:=topic"],
+                                  cwd=root(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                  start_new_session=True)
+        try:
+            time.sleep(4.0)  # roscore, the node, its scene
+            text = run(["/usr/bin/python3", "scripts/node_deadlines.py", "--rate", "500"] + extra, timeout=180)
+        finally:
+            os.killpg(launch.pid, signal.SIGINT)
+            launch.wait(timeout=60)
+        m = re.search(r"(\d+) steps over .* (\d+) late \(([0-9.]+) %\), (\d+) skipped ticks .* largest step seen "
+                      r"([0-9.]+) ms", text)
+        if not m:
+            raise RuntimeError("node_deadlines.py printed no figures:\n" + text)
+        p = re.search(r"prediction of \d+ steps at [0-9.]+ s: ([0-9.]+) s wall, (.*); meanwhile (\d+) live steps, "
+                      r"(\d+) late \(([0-9.]+) %\), (\d+) skipped", text)
+        pred = ("%s s, %s; %s late of %s (%s %%), %s skipped" % (
+            p.group(1), "predicted" if p.group(2) == "predicted" else "stopped by ~predict_max_wall", p.group(4),
+            p.group(3), p.group(5), p.group(6)) if p else "–")
+        rows.append("| %s | %s | %s (%s %%) | %s | %s | %s |" % (label, m.group(1), m.group(2), m.group(3), m.group(4),
+                                                                m.group(5), pred))
+    head = ("| prediction beside the loop | steps | late steps | skipped ticks | largest step seen ms "
+            "| the prediction: wall, outcome; the loop meanwhile |\n|---|---|---|---|---|---|\n")
+    return head + "\n".join(rows) + "\n", [
+        "roslaunch needle_sim sim.launch scene:=$PWD/config/scenes/phantom_insertion_adaptive.yaml command_source:=topic &",
+        "scripts/node_deadlines.py --rate 500 [--predict-steps 99000]   # 4 s later; a launch each"]
+
+
 def stability_sweep():
     """The whole stability sweep (one parameter at a time across its range); its map into doc/."""
     out = "results/stability"
@@ -379,6 +412,8 @@ BENCHMARKS = [
     ("calibration", "calibrate recovering known cutting force and grip from a noisy synthetic record",
      1, False, calibration),
     ("node_overhead", "the ROS node's output cost against its step (launches the node)", 1, False, node_overhead),
+    ("node_prediction", "the node's loop with a long ~predict beside it (launches the node)", 1, False,
+     node_prediction),
     ("soak", "a back-and-forth insertion for 22,500 steps: memory and step time per cycle",
      1, False, printed_table(["T", "soak", "config/scenes/phantom_insertion_adaptive.yaml", "--steps", "22500"])),
     ("stability_sweep", "the stability sweep: one parameter at a time across its range", 2, False, stability_sweep),

@@ -10,6 +10,11 @@ insertion (differences of the lifetime counters), with the machine's load averag
     roslaunch needle_sim sim.launch scene:=$PWD/config/scenes/phantom_insertion_adaptive.yaml command_source:=topic &
     scripts/node_deadlines.py --rate 500
 
+With --predict-steps N, a ~predict request of N steps at --predict-dt is sent 0.2 s into the
+insertion, from a thread of its own (as a planner beside the robot's loop would), and a second
+line reports it: its wall time, whether the node stopped it (~predict_max_wall), and the late
+steps and skipped ticks of the live loop while it ran.
+
 Prints one line: steps, late steps and skipped ticks (counts and % of the steps), the
 largest step, the load average; exit status 0 (a measurement, not a test).
 """
@@ -20,7 +25,8 @@ import threading
 
 import rospy
 from geometry_msgs.msg import PoseStamped
-from needle_sim.msg import SimStatus
+from needle_sim.msg import NeedleWaypoint, SimStatus
+from needle_sim.srv import PredictInsertion, PredictInsertionRequest
 
 
 def main():
@@ -37,6 +43,8 @@ def main():
     ap.add_argument("--status-at-ends", action="store_true",
                     help="read ~status only before and after the insertion (no 1 kHz status stream to the client: "
                          "the largest step is then not seen)")
+    ap.add_argument("--predict-steps", type=int, default=0, help="a ~predict request of this many steps during the run")
+    ap.add_argument("--predict-dt", type=float, default=0.001, help="its time step [s]")
     args = ap.parse_args(rospy.myargv()[1:])
     rospy.init_node("node_deadlines", anonymous=True)
     lock = threading.Lock()
@@ -77,6 +85,36 @@ def main():
         m0 = last["m"]
     if args.status_at_ends:
         sub.unregister()
+    predicted = {}
+
+    def predict():
+        # The base held where it will be 0.2 s in, for N steps (a plan the guard accepts).
+        rospy.sleep(0.2)
+        req = PredictInsertionRequest()
+        req.needle = args.needle
+        req.dt = args.predict_dt
+        req.trajectory.header.frame_id = args.frame
+        w = NeedleWaypoint()
+        w.time_from_start = rospy.Duration(args.predict_steps * args.predict_dt)
+        w.pose = pose_at(0.2).pose
+        req.trajectory.waypoints = [w]
+        with lock:
+            a = last["m"]
+        call = rospy.ServiceProxy(args.node + "/predict", PredictInsertion)
+        t = rospy.get_time()
+        r = call(req)
+        predicted["wall"] = rospy.get_time() - t
+        with lock:
+            b = last["m"]
+        predicted.update(response=r, late=b.late_steps - a.late_steps, skipped=b.skipped_ticks - a.skipped_ticks,
+                         steps=b.step - a.step)
+
+    if args.predict_steps > 0:
+        rospy.wait_for_service(args.node + "/predict", timeout=10)
+        if args.status_at_ends:
+            raise SystemExit("node_deadlines: --predict-steps needs the status stream (not --status-at-ends)")
+        predictor = threading.Thread(target=predict, daemon=True)
+        predictor.start()
     rate = rospy.Rate(args.rate)
     t0 = rospy.Time.now()
     step_max = 0.0
@@ -89,6 +127,12 @@ def main():
             with lock:
                 step_max = max(step_max, last["m"].step_ms)
         rate.sleep()
+    if args.predict_steps > 0:
+        # The robot holds its last pose until the prediction is answered (the node holds the
+        # needle without commands), the loop's steps counted on.
+        while predictor.is_alive() and not rospy.is_shutdown():
+            pub.publish(pose_at(total + 1.0))
+            rate.sleep()
     if args.status_at_ends:
         last["m"] = rospy.wait_for_message(args.node + "/status", SimStatus)
     with lock:
@@ -101,6 +145,16 @@ def main():
           "(%.2f %%), largest step seen %.2f ms, %d commands rejected, load average %.2f %.2f %.2f" % (
               steps, total, args.rate, late, 100.0 * late / max(steps, 1), skipped, 100.0 * skipped / max(steps, 1),
               step_max, m1.rejected_commands - m0.rejected_commands, load[0], load[1], load[2]))
+    if args.predict_steps > 0:
+        if "response" not in predicted:
+            print("node_deadlines: the prediction had not returned when the insertion ended")
+        else:
+            r = predicted["response"]
+            print("node_deadlines: a prediction of %d steps at %g s: %.2f s wall, %s; meanwhile %d live steps, %d late "
+                  "(%.2f %%), %d skipped ticks" % (
+                      args.predict_steps, args.predict_dt, predicted["wall"],
+                      "predicted" if r.success else "not predicted (%s)" % r.message, predicted["steps"],
+                      predicted["late"], 100.0 * predicted["late"] / max(predicted["steps"], 1), predicted["skipped"]))
 
 
 if __name__ == "__main__":
