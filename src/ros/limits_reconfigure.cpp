@@ -42,12 +42,14 @@ void LimitsReconfigure::onChange(needle_sim::LimitsConfig& c, uint32_t) {
     c.quaternion_tolerance = old.quaternion_tolerance;
     c.workspace_margin = old.workspace_margin;
     c.display_rate = display_rate_;
+    c.refused = e.what();  // the caller's answer says why (dynparam set prints nothing)
     return;
   }
   {
     std::lock_guard<std::mutex> lk(refusal_mutex_);
     last_refusal_.clear();
   }
+  c.refused.clear();
   display_rate_ = c.display_rate;
   set_display_rate_(c.display_rate);
   ROS_INFO("needle_sim: limits now max_speed %g m/s, max_angular_speed %g rad/s (%g inserted), workspace_margin %g m",

@@ -126,8 +126,8 @@ bool resetAndWait(Node& n) {
 }
 
 // Sets one limit through the node's reconfigure service, as `dynparam set` does; returns
-// the value the node sends back as its configuration.
-double reconfigure(const std::string& name, double value) {
+// the value the node sends back as its configuration, and in `refused` the reason it gives.
+double reconfigure(const std::string& name, double value, std::string* refused = nullptr) {
   dynamic_reconfigure::Reconfigure srv;
   dynamic_reconfigure::DoubleParameter d;
   d.name = name;
@@ -136,6 +136,11 @@ double reconfigure(const std::string& name, double value) {
   if (!ros::service::call("needle_sim/set_parameters", srv)) {
     ADD_FAILURE() << "set_parameters call failed";
     return std::nan("");
+  }
+  if (refused) {
+    *refused = "(none returned)";
+    for (const auto& s : srv.response.config.strs)
+      if (s.name == "refused") *refused = s.value;
   }
   for (const auto& x : srv.response.config.doubles)
     if (x.name == name) return x.value;
@@ -196,8 +201,15 @@ TEST_F(GuardSafety, ReconfigureRefusesBadLimitsWholeAndKeepsTheOldOnes) {
   EXPECT_EQ(n.logged(log0, rosgraph_msgs::Log::ERROR, {"1e+09 m/s is above its ceiling ~max_speed_ceiling = 0.09 m/s"}), 1);
   EXPECT_EQ(n.logged(log0, rosgraph_msgs::Log::ERROR, {"0.095 m/s is above its ceiling ~max_speed_ceiling = 0.09"}), 1);
   EXPECT_EQ(n.logged(log0, rosgraph_msgs::Log::ERROR, {"'~max_speed': must be positive and finite"}), 4);  // inf, NaN, -1, 0
+  // The caller's answer says why (#42: `dynparam set` prints nothing), and is cleared by a set
+  // that is taken.
+  std::string why;
+  EXPECT_EQ(reconfigure("max_speed", 1e9, &why), 0.05);
+  EXPECT_NE(why.find("1e+09 m/s is above its ceiling ~max_speed_ceiling = 0.09 m/s"), std::string::npos) << why;
+  ++refused;
   // A valid set is taken (at the ceiling), and so is the way back.
-  EXPECT_EQ(reconfigure("max_speed", 0.09), 0.09);
+  EXPECT_EQ(reconfigure("max_speed", 0.09, &why), 0.09);
+  EXPECT_EQ(why, "");
   EXPECT_EQ(reconfigure("max_speed", 0.05), 0.05);
   // A set that fails in one value keeps the others too (the in-tissue turn limit above its
   // own ceiling of 0.5 rad/s, with a valid max_speed beside it).
@@ -216,7 +228,7 @@ TEST_F(GuardSafety, ReconfigureRefusesBadLimitsWholeAndKeepsTheOldOnes) {
     }
   }
   // Diagnostics count the refusals (1 Hz of simulated time).
-  EXPECT_TRUE(waitFor([&] { return n.diagValue("simulation", "reconfigure_refused") == "7"; }, 10.0))
+  EXPECT_TRUE(waitFor([&] { return n.diagValue("simulation", "reconfigure_refused") == "8"; }, 10.0))
       << n.diagValue("simulation", "reconfigure_refused");
 }
 
