@@ -10,7 +10,8 @@ devel space, or `pip install -e .`) or an install space alike:
   scene(name)        a shipped scene, <share>/config/scenes/<name>;
   tool()             the needle_sim tool: $NEEDLE_SIM_TOOL, else the source checkout's devel
                      space (devel/lib/needle_sim/needle_sim) or plain-CMake build
-                     (build/bin/needle_sim), else the install space's
+                     (build/core/bin/needle_sim: scripts/core_build.sh; or
+                     build/bin/needle_sim), else the install space's
                      <prefix>/lib/needle_sim/needle_sim, else `needle_sim` on PATH;
   results_dir(name)  ./results/<name> (the current folder: an install space is read-only).
 """
@@ -61,6 +62,7 @@ def tool():
         return env
     src = source_dir()
     candidates = [os.path.join(src, "devel", "lib", "needle_sim", "needle_sim"),
+                  os.path.join(src, "build", "core", "bin", "needle_sim"),
                   os.path.join(src, "build", "bin", "needle_sim")] if src else []
     candidates.append(os.path.join(_PREFIX, "lib", "needle_sim", "needle_sim"))
     for c in candidates:

@@ -136,6 +136,10 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   if (!(p.predict_sample_period > 0) || !std::isfinite(p.predict_sample_period))
     throw InputError("", "~predict_sample_period", "must be > 0");
   if (p.predict_max_steps < 1) throw InputError("", "~predict_max_steps", "must be >= 1");
+  pnh.param("predict_preempt", p.predict_preempt, p.predict_preempt);
+  pnh.param("preflight_wall", p.preflight_wall, p.preflight_wall);
+  if (!(p.preflight_wall >= 0) || !std::isfinite(p.preflight_wall) || p.preflight_wall > 600)
+    throw InputError("", "~preflight_wall", "must be in [0, 600] s (0: no pre-flight)");
   pnh.param("predict_max_wall", p.predict_max_wall, p.predict_max_wall);
   if (!(p.predict_max_wall >= 0) || !std::isfinite(p.predict_max_wall))
     throw InputError("", "~predict_max_wall", "must be >= 0 and finite (0: no limit)");

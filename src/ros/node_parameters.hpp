@@ -55,6 +55,12 @@ struct NodeParameters {
   // ~predict_max_wall [s]: the wall time one ~predict or ~steer request may take (0: no limit);
   // a request over it is stopped and answered unsuccessful.
   double predict_max_wall = 5.0;
+  // ~predict_preempt: a ~predict or ~steer request under way is cancelled when a newer one
+  // arrives (answered unsuccessful, "preempted"); false: requests are answered in turn.
+  bool predict_preempt = true;
+  // ~preflight_wall [s]: at start, this much wall time of the scene's own motion on a copy,
+  // paced at dt, says whether the scene keeps real time here (0: no pre-flight).
+  double preflight_wall = 2.0;
   double insert_speed = 0.005;          // [m/s] default speed of ~insert goals
   double target_error_period = 0.2;     // [s] goal-oriented error bound of the targets this often (0: off)
   double deadline_warn_fraction = 0.05;  // diagnostics WARN above this share of late steps / skipped ticks

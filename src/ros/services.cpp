@@ -67,7 +67,11 @@ bool SimulatorRos::onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::
   return true;
 }
 
-PredictionBudget SimulatorRos::predictionBudget() {
+bool SimulatorRos::superseded(long generation) const {
+  return params_->predict_preempt && predict_generation_.load() != generation;
+}
+
+PredictionBudget SimulatorRos::predictionBudget(long generation) {
   // The predictions' thread (its own spinner) gives way to every other thread of the node:
   // the live loop never waits for a prediction. SCHED_IDLE: any other thread that wakes takes
   // its core at once (at nice 19 a woken stepping thread could still wait out the
@@ -88,7 +92,9 @@ PredictionBudget SimulatorRos::predictionBudget() {
     b.deadline_name = buf;
   }
   const long epoch = predict_epoch_.load();
-  b.cancelled = [this, epoch] { return predict_epoch_.load() != epoch; };
+  // ~reset and the node's end cancel it; so does a newer request (~predict_preempt): a
+  // planner wants the answer to its latest question, not to one it has given up on.
+  b.cancelled = [this, epoch, generation] { return predict_epoch_.load() != epoch || superseded(generation); };
   return b;
 }
 
@@ -98,6 +104,7 @@ void SimulatorRos::predictionDone(double wall_s, const char* outcome) {
   ++c.requests;
   if (std::string(outcome) == "stopped") ++c.stopped;
   if (std::string(outcome) == "cancelled") ++c.cancelled;
+  if (std::string(outcome) == "preempted") ++c.preempted;
   c.last_s = wall_s;
   c.max_s = std::max(c.max_s, wall_s);
   c.total_s += wall_s;
@@ -105,7 +112,9 @@ void SimulatorRos::predictionDone(double wall_s, const char* outcome) {
 
 bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_sim::PredictInsertion::Response& res) {
   const auto w0 = ros::WallTime::now();
-  const PredictionBudget budget = predictionBudget();  // from the request's arrival
+  const long generation = ++predict_generation_;
+  const PredictionBudget budget = predictionBudget(generation);  // from the request's arrival
+  std::lock_guard<std::mutex> turn(predict_turn_mutex_);  // one at a time; superseded: stops at once
   res.success = false;
   res.final_target_tip_distance = std::numeric_limits<double>::quiet_NaN();
   res.max_tip_speed = res.max_tip_speed_time = std::numeric_limits<double>::quiet_NaN();
@@ -159,8 +168,12 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
     return true;
   } catch (const PredictionStopped& e) {
     res.message = std::string("the prediction was ") + e.what();
+    const bool preempted = superseded(generation);
+    if (preempted) res.message += " (preempted: a newer ~predict or ~steer request arrived; ~predict_preempt)";
     res.compute_time = (ros::WallTime::now() - w0).toSec();
-    predictionDone(res.compute_time, res.message.find("cancelled") != std::string::npos ? "cancelled" : "stopped");
+    predictionDone(res.compute_time, preempted ? "preempted"
+                                                : res.message.find("cancelled") != std::string::npos ? "cancelled"
+                                                                                                     : "stopped");
     ROS_WARN("needle_sim: predict: %s", res.message.c_str());
     return true;
   }

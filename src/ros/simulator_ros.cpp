@@ -44,6 +44,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   // A real-time loop takes a refreshed factor as soon as it is ready: no step waits for it
   // (doc/ros_api.md, ~deterministic_factor; the results then vary within the CG tolerance).
   if (!P.deterministic_factor) scene_.solver.linear.async_lag = 0;
+  const std::vector<NeedleScene> scene_needles = scene_.needles;  // with their motion (pre-flight)
   if (P.command_source != "scene")
     for (auto& n : scene_.needles) n.motion.clear();  // the base follows the commands only
   tf_buffer_ = std::make_unique<tf2_ros::Buffer>();
@@ -63,6 +64,18 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   tip_speed_over_.assign(scene_.needles.size(), 0);
   diag_tip_over_.assign(scene_.needles.size(), 0);
   load();
+  if (P.preflight_wall > 0) {
+    // Before any thread of the node runs: the copy's steps have the machine to themselves,
+    // as the live loop will (minus what its outputs and clients cost).
+    Scene own = scene_;
+    own.needles = scene_needles;
+    preflight_ = preflight(*sim_, own, {P.preflight_wall});
+    preflight_run_ = true;
+    if (preflight_.keepsRealTime())
+      ROS_INFO("needle_sim: %s", preflight_.summary().c_str());
+    else
+      ROS_WARN("needle_sim: %s; started anyway (diagnostics keep the warning)", preflight_.summary().c_str());
+  }
   // A later load (~reset) may come while prediction and error threads run BLAS: it keeps
   // the steps' thread count (changing it under running BLAS calls is not safe).
   Simulation::setSetupThreads(0);
@@ -104,7 +117,9 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
     });
     so.callback_queue = &predict_queue_;
     steer_srv_ = pnh_.advertiseService(so);
-    predict_spinner_ = std::make_unique<ros::AsyncSpinner>(1, &predict_queue_);
+    // Two threads: a newer request starts at once and supersedes the one under way
+    // (~predict_preempt); they take turns at the simulation (predict_turn_mutex_).
+    predict_spinner_ = std::make_unique<ros::AsyncSpinner>(2, &predict_queue_);
     predict_spinner_->start();
   }
   action_ = std::make_unique<InsertAction>(*this, pnh_, P.insert_speed);

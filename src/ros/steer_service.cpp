@@ -19,7 +19,9 @@ namespace needle_sim {
 bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::SteerToTarget::Response& res,
                            const std::string& caller) {
   const auto w0 = ros::WallTime::now();
-  const PredictionBudget budget = predictionBudget();  // from the request's arrival
+  const long generation = ++predict_generation_;
+  const PredictionBudget budget = predictionBudget(generation);  // from the request's arrival
+  std::lock_guard<std::mutex> turn(predict_turn_mutex_);  // one at a time; superseded: stops at once
   const double nan = std::numeric_limits<double>::quiet_NaN();
   res.success = res.reached = res.executed = false;
   res.roll = res.flip_depth = res.advance = res.predicted_distance = res.curvature = nan;
@@ -89,8 +91,10 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
     return true;
   } catch (const PredictionStopped& e) {
     res.message = std::string("planning stopped: a prediction was ") + e.what();
+    const bool preempted = superseded(generation);
+    if (preempted) res.message += " (preempted: a newer ~predict or ~steer request arrived; ~predict_preempt)";
     predictionDone((ros::WallTime::now() - w0).toSec(),
-                   res.message.find("cancelled") != std::string::npos ? "cancelled" : "stopped");
+                   preempted ? "preempted" : res.message.find("cancelled") != std::string::npos ? "cancelled" : "stopped");
     ROS_WARN("needle_sim: steer: %s", res.message.c_str());
     return true;
   }

@@ -115,6 +115,9 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
                        " steps since the last report whose needle-tissue constraint solve missed its tolerance "
                        "(interaction.solver; last residual " + std::to_string(constraint_residual_) + ")");
   if (lag > 10 * scene_.dt) warnings.push_back("the simulation is " + std::to_string(lag) + " s behind the clock");
+  if (preflight_run_ && !preflight_.keepsRealTime())
+    warnings.push_back("the pre-flight says this scene will not keep real time here (margin " +
+                       std::to_string(preflight_.margin()) + ", ~preflight_wall)");
   if (!failure_.empty()) {
     stat.summary(diagnostic_msgs::DiagnosticStatus::ERROR, "numerical failure: " + failure_);
   } else if (!warnings.empty()) {
@@ -159,9 +162,25 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   stat.add("predictions", c.requests);
   stat.add("predictions_stopped", c.stopped);
   stat.add("predictions_cancelled", c.cancelled);
+  stat.add("predictions_preempted", c.preempted);
   stat.add("prediction_wall_s_last", c.last_s);
   stat.add("prediction_wall_s_max", c.max_s);
   stat.add("prediction_wall_s_total", c.total_s);
+  // The pre-flight at start (~preflight_wall): its verdict and figures.
+  if (preflight_run_) {
+    const PreflightResult& f = preflight_;
+    stat.add("preflight", f.keepsRealTime() ? "keeps real time" : "will not keep real time");
+    stat.add("preflight_margin", f.margin());
+    stat.add("preflight_steps", f.steps);
+    stat.add("preflight_sim_time_s", f.t_end);
+    stat.add("preflight_step_ms_median", f.median_ms);
+    stat.add("preflight_step_ms_p999", f.p999_ms);
+    stat.add("preflight_step_ms_max", f.max_ms);
+    stat.add("preflight_steps_over_dt", f.over_dt);
+    stat.add("preflight_summary", f.summary());
+  } else {
+    stat.add("preflight", "not run (~preflight_wall 0)");
+  }
 }
 
 }  // namespace needle_sim

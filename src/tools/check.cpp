@@ -16,6 +16,7 @@
 #include "needle_sim/scene/scene_check.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/scene/scene_overrides.hpp"
+#include "needle_sim/sim/preflight.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 using namespace needle_sim;
@@ -172,9 +173,13 @@ int checkCommand(const CheckOptions& o) {
     const Scene scene = loadScene(o.scene, o.sets);
     for (const std::string& w : sceneWarnings(scene)) std::cerr << "needle_sim: warning: " << w << '\n';
     Simulation sim(scene);
-    if (!o.json && o.aims.empty()) {
+    const bool machine = o.json || !o.aims.empty();
+    const double budget = o.preflight >= 0 ? o.preflight : (machine ? 0.0 : 2.0);
+    if (!machine) {
       std::printf("%s: ok (%d dofs, %d elements, %ld steps)\n", o.scene.c_str(), sim.numDofs(), sim.numElements(),
                   scene.numSteps());
+      std::fflush(stdout);
+      if (budget > 0) std::printf("%s\n", preflight(sim, scene, {budget}).summary().c_str());
       return 0;
     }
     const YAML::Node tree = resolvedTree(o.scene, o.sets);
@@ -189,6 +194,14 @@ int checkCommand(const CheckOptions& o) {
                         {"point", vec(scene.probes[i].point)}});
     out["targets"] = targets;
     out["probes"] = probes;
+    if (budget > 0) {
+      const PreflightResult p = preflight(sim, scene, {budget});
+      out["preflight"] = {{"steps", p.steps},           {"scene_steps", p.scene_steps}, {"t_end", p.t_end},
+                          {"dt", p.dt},                 {"step_median_ms", p.median_ms}, {"step_p999_ms", p.p999_ms},
+                          {"step_max_ms", p.max_ms},    {"over_dt", p.over_dt},         {"max_dofs", p.max_dofs},
+                          {"keeps_real_time", p.keepsRealTime()}, {"margin", p.margin()}, {"failure", p.failure},
+                          {"summary", p.summary()}};
+    }
     if (!o.aims.empty()) {
       const std::vector<size_t> moved = movedNeedles(scene, o);
       Json aims = Json::array();

@@ -340,6 +340,10 @@ int main(int argc, char** argv) {
   check->add_option("--aim-needles", check_opts.aim_needles, "the needles --aim moves (default: all; the first in scene "
                                                              "order is the one aimed)")
       ->delimiter(',');
+  check->add_option("--preflight", check_opts.preflight,
+                    "S: time up to S seconds of the scene's own motion, paced at dt, and say whether it keeps real "
+                    "time here (0: not; default 2 s, and 0 with --json or --aim)")
+      ->check(CLI::Range(0.0, 600.0));
 
   BenchOptions bench_opts;
   auto* bench = app.add_subcommand("bench", "time the steps of a scene at several grids, split by phase");

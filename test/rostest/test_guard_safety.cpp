@@ -38,6 +38,7 @@
 #include <map>
 #include <mutex>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <geometry_msgs/PoseStamped.h>
@@ -452,6 +453,36 @@ TEST_F(GuardSafety, APredictionStopsAtItsWallBudgetOnALowPriorityThread) {
       },
       10.0))
       << "diagnostics do not count the stopped prediction";
+}
+
+// 6. (#40) A newer request preempts the one under way (~predict_preempt, on by default): the
+//    older is answered unsuccessful, "preempted", long before its budget; the newer is answered.
+TEST_F(GuardSafety, ANewerPredictionPreemptsTheOneUnderWay) {
+  Node& n = *node_;
+  ASSERT_TRUE(resetAndWait(n));
+  const std::string before = n.diagValue("simulation", "predictions_preempted");
+  needle_sim::PredictInsertion old_request = advanceBy5mm(99.0, 0.001);  // 20 s of work, stopped at 2 s
+  const ros::WallTime t0 = ros::WallTime::now();
+  std::thread older([&] { EXPECT_TRUE(ros::service::call("needle_sim/predict", old_request)); });
+  ros::WallDuration(0.5).sleep();  // the older one is under way
+  needle_sim::PredictInsertion newer = advanceBy5mm(0.5, 0.01);
+  ASSERT_TRUE(ros::service::call("needle_sim/predict", newer));
+  older.join();
+  const double wall = (ros::WallTime::now() - t0).toSec();
+  EXPECT_TRUE(newer.response.success) << newer.response.message;
+  EXPECT_FALSE(old_request.response.success);
+  EXPECT_NE(old_request.response.message.find("preempted: a newer ~predict or ~steer request arrived"),
+            std::string::npos)
+      << old_request.response.message;
+  EXPECT_LT(old_request.response.compute_time, 1.5) << "not preempted: it ran to its 2 s budget";
+  EXPECT_LT(wall, 3.0);
+  EXPECT_TRUE(waitFor(
+      [&] {
+        const std::string v = n.diagValue("simulation", "predictions_preempted");
+        return !v.empty() && std::stoul(v) == (before.empty() ? 0 : std::stoul(before)) + 1;
+      },
+      10.0))
+      << "diagnostics do not count the preempted prediction";
 }
 
 int main(int argc, char** argv) {

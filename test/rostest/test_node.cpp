@@ -14,6 +14,7 @@
 
 #include <atomic>
 #include <cmath>
+#include <map>
 #include <mutex>
 
 #include <geometry_msgs/PoseStamped.h>
@@ -197,16 +198,28 @@ TEST(NeedleSimNode, CommandedInsertionRejectsBadCommandsAndResets) {
   // 5. Diagnostics: the rejected commands above show as a warning or the node is OK again.
   bool have_diag = false;
   std::string level_name;
+  std::map<std::string, std::string> values;
   auto s7 = nh.subscribe<diagnostic_msgs::DiagnosticArray>("/diagnostics", 10, [&](const diagnostic_msgs::DiagnosticArray::ConstPtr& m) {
     std::lock_guard<std::mutex> lk(L.m);
     for (const auto& d : m->status)
       if (d.name.find("simulation") != std::string::npos) {
         have_diag = true;
         level_name = d.message;
+        for (const auto& kv : d.values) values[kv.key] = kv.value;
       }
   });
   ASSERT_TRUE(waitFor([&] { std::lock_guard<std::mutex> lk(L.m); return have_diag; }, 5.0));
   s7.shutdown();
+  {
+    // The pre-flight at start (#40): the scene's own motion timed on a copy (the default 2 s of
+    // wall time), its verdict and figures kept in diagnostics.
+    std::lock_guard<std::mutex> lk(L.m);
+    const std::string verdict = values["preflight"];
+    EXPECT_TRUE(verdict == "keeps real time" || verdict == "will not keep real time") << verdict;
+    EXPECT_GT(std::stol(values["preflight_steps"]), 100);
+    EXPECT_EQ(values["preflight_summary"].rfind("pre-flight: ", 0), 0u) << values["preflight_summary"];
+    EXPECT_GT(std::stod(values["preflight_step_ms_max"]), 0.0);
+  }
 
   // 6. Reset: the initial state again; the counters are lifetime counts and stay.
   const auto before_reset = L.lastStatus().rejected_commands;

@@ -154,6 +154,20 @@ TEST(Cli, UsageErrorsExitWith2) {
   EXPECT_EQ(runTool("run /nonexistent/scene.yaml --out '" + out.string() + "'").status, 2);
   EXPECT_EQ(runTool("run '" + kSrc + "/config/scenes/phantom_8x4x4.yaml' --out '" + out.string() + "' --set nonsense").status, 2);
   EXPECT_EQ(runTool("check '" + kSrc + "/config/scenes/phantom_8x4x4.yaml'").status, 0);
+  // The pre-flight (#40): plain check says whether the scene keeps real time here; --json
+  // carries it when asked; a budget out of range is refused. The 32x16x16 reference cannot
+  // keep its 1 ms step on any machine this runs on (tens of ms a step).
+  const std::string tool = "'" + kTool + "' check ";
+  const std::string pf = capture(tool + "phantom_insertion_32x16x16.yaml --preflight 0.3");
+  EXPECT_NE(pf.find("pre-flight: "), std::string::npos) << pf;
+  EXPECT_NE(pf.find("WILL NOT keep real time here, margin 0."), std::string::npos) << pf;
+  const json p = json::parse(capture(tool + "phantom_insertion_8x4x4.yaml --json --set time.dt=0.05 --preflight 0.5"))
+                     .at("preflight");
+  EXPECT_TRUE(p["keeps_real_time"].get<bool>()) << p.dump();
+  EXPECT_GT(p["margin"].get<double>(), 1.0);
+  EXPECT_GE(p["steps"].get<long>(), 5);
+  EXPECT_FALSE(json::parse(capture(tool + "phantom_insertion_8x4x4.yaml --json")).contains("preflight"));
+  EXPECT_EQ(runTool("check phantom_insertion_8x4x4.yaml --preflight -1").status, 2);
   // The target estimate is timed on adaptive scenes only: asked of another, a clear error.
   const auto b = runTool("bench --scene '" + kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml' --target 0.022 0.01 0.01 "
                          "--target-error-every 20");

@@ -42,6 +42,7 @@
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/prediction.hpp"
+#include "needle_sim/sim/preflight.hpp"
 #include "needle_sim/sim/realtime_schedule.hpp"
 #include "needle_sim/core/run_statistics.hpp"
 #include "needle_sim/sim/simulation.hpp"
@@ -188,15 +189,26 @@ class SimulatorRos {
   ros::CallbackQueue predict_queue_;  // predictions (~predict, ~steer) take their own thread
   // Predictions and plans (services.cpp): their budget (~predict_max_wall; cancelled when the
   // epoch moves: ~reset, the node's end), and what they cost (diagnostics).
-  PredictionBudget predictionBudget();
-  void predictionDone(double wall_s, const char* outcome);  // "ok", "stopped", "cancelled", "failed"
+  PredictionBudget predictionBudget(long generation);
+  void predictionDone(double wall_s, const char* outcome);  // "ok", "stopped", "cancelled", "preempted", "failed"
   std::atomic<long> predict_epoch_{0};
+  // Requests in order of arrival: the predictions' two threads take turns (one prediction at
+  // a time, predict_turn_mutex_), and a newer request supersedes the one under way or waiting
+  // (~predict_preempt): its budget's cancel test sees the generation move on.
+  std::atomic<long> predict_generation_{0};
+  std::mutex predict_turn_mutex_;
+  bool superseded(long generation) const;
   std::mutex predict_cost_mutex_;
   struct PredictionCost {
-    long requests = 0, stopped = 0, cancelled = 0;
+    long requests = 0, stopped = 0, cancelled = 0, preempted = 0;
     double last_s = 0, max_s = 0, total_s = 0;
   } predict_cost_;
   std::unique_ptr<ros::AsyncSpinner> predict_spinner_;
+  // The pre-flight at start (~preflight_wall; sim/preflight.hpp): whether the scene keeps
+  // real time here, in the log and in diagnostics for the node's lifetime. Set before any
+  // thread starts, read-only after.
+  PreflightResult preflight_;
+  bool preflight_run_ = false;
   std::thread thread_;
   std::mutex error_mutex_;  // error_job_, errors_latest_, errors_step_, error_busy_, error_stop_
   std::condition_variable error_cv_;

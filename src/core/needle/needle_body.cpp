@@ -5,7 +5,7 @@
 
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/core/stopwatch.hpp"
-#include "needle_sim/needle/duty_cycled_spin.hpp"
+#include "needle_sim/needle/scene_trajectory.hpp"
 
 namespace needle_sim {
 
@@ -42,14 +42,12 @@ double weightedNorm(const VecX& r_free, const DofMap& dofs, double L) {
 NeedleBody::NeedleBody(const NeedleParameters& n, const SolverSettings& solver)
     : name_(n.name),
       beam_(n.elements, n.length, sectionOf(n), materialOf(n), n.base_position, n.base_direction),
-      trajectory_(BasePose{n.base_position, n.base_direction, n.base_roll}),
+      trajectory_(sceneTrajectory(n)),
       settings_(solver),
       dofs_(basePrescribed(6 * (n.elements + 1))),
       assembler_(dofs_.numFree(), beamElementDofs(n.elements, dofs_)),
       chol_(Ordering::Amd),
       bevel_(n.bevel) {
-  for (const auto& k : expandDutyCycledSpin(n.motion, trajectory_.rest()))
-    trajectory_.add(k.t, BasePose{k.position, k.direction, k.roll});
   state_ = beam_.restState();
   v_ = VecX::Zero(beam_.numDofs());
   mass_ = beam_.lumpedMass();

@@ -229,6 +229,27 @@ def gel_demo():
     return head + "\n".join(rows) + "\n", cmds
 
 
+PREFLIGHT_SCENES = ["phantom_insertion_adaptive.yaml", "dbs_coarse.yaml", "dbs_adaptive.yaml", "dbs_goal.yaml",
+                    "gel_bevel_steering.yaml", "phantom_insertion_32x16x16.yaml", "dbs_fine.yaml"]
+
+
+def preflight():
+    """The pre-flight of every scene meant for a live loop, and of two reference meshes:
+    `needle_sim check SCENE` (the node says the same at its start)."""
+    rows = []
+    for scene in PREFLIGHT_SCENES:
+        cmd = ["T", "check", scene, "--json", "--preflight", "3"]
+        p = json.loads(run(cmd))["preflight"]
+        rows.append("| %s | %g | %d of %d | %.3g s | {:,} | %.3g | %.3g | %.3g | %d (%.1f %%) | %s | %.2f× |".format(
+            p["max_dofs"]) % (scene[:-5], 1e3 * p["dt"], p["steps"], p["scene_steps"], p["t_end"], p["step_median_ms"],
+                              p["step_p999_ms"], p["step_max_ms"], p["over_dt"], 100.0 * p["over_dt"] / max(1, p["steps"]),
+                              "keeps real time" if p["keeps_real_time"] else "**will not**", p["margin"]))
+    head = ("| scene | dt ms | steps timed | to t | DOFs max | step median ms | p99.9 ms | max ms | over dt | verdict "
+            "| margin (dt / p99.9) |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
+    return head + "\n".join(rows) + "\n", ["for s in %s; do %s check $s --preflight 3; done" % (
+        " ".join(s[:-5] for s in PREFLIGHT_SCENES), TOOL_SHOWN)]
+
+
 def steer():
     """The gel demo's roll-flip plan to a target 5 mm off the axis at 40 mm, predictions at 10 ms."""
     out = tempfile.mkdtemp(prefix="bench_steer_")
@@ -402,6 +423,8 @@ BENCHMARKS = [
     ("dbs_paced", "the adaptive DBS scene paced at its 10 ms (after the brain shift)",
      1, False, printed_table(["T", "bench", "--scene", "dbs_adaptive.yaml", "--steps", "0", "--pace"])),
     ("dbs_prestep", "the brain-shift pre-step when a DBS scene loads, three loads each", 1, False, dbs_prestep),
+    ("preflight", "the pre-flight (3 s of each scene's motion, paced) of the live scenes and two references",
+     2, False, preflight),
     ("constraint_solve", "the block active-set constraint solve against projected Gauss–Seidel, four scenes",
      2, False, constraint_solve),
     ("target_error", "the adaptive phantom with a target's goal-oriented error bound every 20 steps",
