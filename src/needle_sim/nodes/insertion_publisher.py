@@ -6,7 +6,8 @@ Publishes geometry_msgs/PoseStamped on /<~node>/<needle>/command_pose at ~rate: 
 speed, then the script exits. The needle axis is the pose's x axis.
 
 Parameters (private): ~node (needle_sim: the simulator's name), ~needle (needle), ~base ([-0.035, 0.01, 0.01]), ~direction ([1, 0, 0]),
-~speed (0.01 m/s), ~depth (0.023 m), ~hold (0.2 s), ~rate (100 Hz), ~start_delay (1 s).
+~speed (0.01 m/s), ~depth (0.023 m), ~hold (0.2 s), ~rate (100 Hz), ~start_delay (1 s: after the node
+has subscribed).
 """
 import math
 
@@ -42,6 +43,10 @@ def main():
     d = [c / n for c in d]
     w, qx, qy, qz = quaternion_from_x_to(d)
     pub = rospy.Publisher("/%s/%s/command_pose" % (node, needle), PoseStamped, queue_size=10)
+    # The node subscribes once it has loaded the scene and run its pre-flight (seconds): the
+    # insertion starts from there, not from this script's own start.
+    while pub.get_num_connections() == 0 and not rospy.is_shutdown():
+        rospy.sleep(0.05)
     rospy.sleep(rospy.get_param("~start_delay", 1.0))
     t_in = depth / speed
     t0 = rospy.Time.now()
