@@ -269,10 +269,12 @@ TEST(Cli, GelSteeringSceneCutsAnSAndPlotsIt) {
     if (p[1].get<double>() > y_max) y_max = p[1].get<double>(), x_at_max = p[0].get<double>();
     z_dev = std::max(z_dev, std::abs(p[2].get<double>() - 0.015));
   }
-  EXPECT_GT(y_max - 0.015, 3e-3);                     // bent by over 3 mm towards +y (3.6 mm)
+  EXPECT_GT(y_max - 0.015, 3e-3);                     // bent by over 3 mm towards +y (4.1 mm)
   EXPECT_NEAR(x_at_max, 0.024, 2e-3);                  // turned back at the roll
-  EXPECT_LT(path.back()[1].get<double>(), y_max - 3e-4);  // and back towards the axis after it (0.46 mm)
-  EXPECT_LT(z_dev, 1e-4);
+  // and back towards the axis after it: 0.20 mm on the shipped adaptive mesh and on a uniform
+  // 2 mm grid (0.51 mm on the uniform 3 mm grid: doc/benchmarks.md "Bevel tip")
+  EXPECT_LT(path.back()[1].get<double>(), y_max - 1e-4);
+  EXPECT_LT(z_dev, 1e-4);                              // in the x-y plane (47 um)
   const std::string cmd = "/usr/bin/python3 '" + kSrc + "/scripts/plot_tip_path.py' '" + out.string() + "' > /dev/null";
   ASSERT_EQ(std::system(cmd.c_str()), 0);
   std::ifstream png(out / "tip_path.png", std::ios::binary);

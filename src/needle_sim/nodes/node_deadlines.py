@@ -10,6 +10,11 @@ insertion (differences of the lifetime counters), with the machine's load averag
     roslaunch needle_sim sim.launch scene:=$PWD/config/scenes/phantom_insertion_adaptive.yaml command_source:=topic &
     scripts/node_deadlines.py --rate 500
 
+With --subscribe-all, every topic of the node, /tf and /diagnostics are subscribed to
+(undecoded), as rviz and a monitor would: the node builds the heavy outputs only when they
+are. For another scene give its needle's rest pose and depth, e.g. the gel demo:
+--base -0.062 0.015 0.015 --depth 0.045.
+
 With --predict-steps N, a ~predict request of N steps at --predict-dt is sent 0.2 s into the
 insertion, from a thread of its own (as a planner beside the robot's loop would), and a second
 line reports it: its wall time, whether the node stopped it (~predict_max_wall), and the late
@@ -45,6 +50,9 @@ def main():
                          "the largest step is then not seen)")
     ap.add_argument("--predict-steps", type=int, default=0, help="a ~predict request of this many steps during the run")
     ap.add_argument("--predict-dt", type=float, default=0.001, help="its time step [s]")
+    ap.add_argument("--subscribe-all", action="store_true",
+                    help="subscribe to every topic the node publishes, /tf and /diagnostics (undecoded), as rviz and a "
+                         "monitor would: the node builds the outputs only for subscribed topics")
     args = ap.parse_args(rospy.myargv()[1:])
     rospy.init_node("node_deadlines", anonymous=True)
     lock = threading.Lock()
@@ -55,6 +63,13 @@ def main():
             last["m"] = m
 
     sub = rospy.Subscriber(args.node + "/status", SimStatus, on_status, queue_size=1)
+    monitors = []
+    if args.subscribe_all:
+        prefix = "/" + args.node.strip("/") + "/"
+        for name, _ in rospy.get_published_topics():
+            if name.startswith(prefix) or name in ("/tf", "/diagnostics"):
+                monitors.append(rospy.Subscriber(name, rospy.AnyMsg, lambda m: None, queue_size=1))
+        rospy.loginfo("node_deadlines: subscribed to %d topics", len(monitors))
     pub = rospy.Publisher("/%s/%s/command_pose" % (args.node, args.needle), PoseStamped, queue_size=10)
     n = math.sqrt(sum(c * c for c in args.direction))
     d = [c / n for c in args.direction]
