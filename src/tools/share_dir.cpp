@@ -1,5 +1,7 @@
 #include "share_dir.hpp"
 
+#include "needle_sim/scene/scene_path.hpp"
+
 #include <unistd.h>
 
 #include <cstdlib>
@@ -51,11 +53,8 @@ std::string pythonPackageRoot() {
   return {};
 }
 
-std::string resolveScene(const std::string& path) {
-  std::error_code ec;
-  if (fs::exists(path, ec) || path.find('/') != std::string::npos) return path;
-  const fs::path shipped = fs::path(shareDir()) / "config" / "scenes" / path;
-  return fs::exists(shipped, ec) ? shipped.string() : path;
-}
+// The node's and the launch files' rule (scene/scene_path.hpp), ".yaml" optional: the tool's
+// own copy of it took "dbs_adaptive.yaml" but not "dbs_adaptive".
+std::string resolveScene(const std::string& path) { return resolveScenePath(path, shareDir()); }
 
 }  // namespace needle_sim

@@ -3,7 +3,7 @@
 // else beside the executable as installed (<prefix>/lib/needle_sim/needle_sim ->
 // <prefix>/share/needle_sim); else the source tree it was built from (devel space). A scene
 // named without a folder that does not exist where it is asked for is looked up in
-// <share>/config/scenes, so `needle_sim run phantom_insertion_adaptive.yaml` works anywhere.
+// <share>/config/scenes, ".yaml" optional, so `needle_sim run phantom_insertion_adaptive` works anywhere.
 #include <string>
 
 namespace needle_sim {

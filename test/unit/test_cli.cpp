@@ -168,6 +168,8 @@ TEST(Cli, UsageErrorsExitWith2) {
   EXPECT_GE(p["steps"].get<long>(), 5);
   EXPECT_FALSE(json::parse(capture(tool + "phantom_insertion_8x4x4.yaml --json")).contains("preflight"));
   EXPECT_EQ(runTool("check phantom_insertion_8x4x4.yaml --preflight -1").status, 2);
+  // A scene by its bare name, as the node and the docs' commands take it (#40 item 5).
+  EXPECT_EQ(runTool("check phantom_insertion_8x4x4 --preflight 0").status, 0);
   // The target estimate is timed on adaptive scenes only: asked of another, a clear error.
   const auto b = runTool("bench --scene '" + kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml' --target 0.022 0.01 0.01 "
                          "--target-error-every 20");
