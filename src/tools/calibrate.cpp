@@ -37,7 +37,7 @@ std::pair<std::string, std::string> keyValue(const std::string& s, const std::st
 CalibrationParameter& find(std::vector<CalibrationParameter>& p, const std::string& key, const std::string& option) {
   for (auto& q : p)
     if (q.key == key) return q;
-  throw InputError("", option, "'" + key + "' is not among the --fit keys");
+  throw InputError("", option, "'" + key + "' is not among the keys to fit");
 }
 
 // The plotting script beside the executable (devel or install space) or in the share dir.
@@ -52,6 +52,30 @@ std::string plotScript() {
 
 }  // namespace
 
+std::vector<CalibrationParameter> parseFitKeys(const std::vector<std::string>& lists, const std::vector<std::string>& starts,
+                                               const std::vector<std::string>& bounds) {
+  std::vector<CalibrationParameter> out;
+  for (const auto& list : lists) {
+    std::stringstream in(list);
+    std::string key;
+    while (std::getline(in, key, ','))
+      if (!key.empty()) out.push_back(CalibrationParameter{key});
+  }
+  for (const auto& st : starts) {
+    const auto [k, v] = keyValue(st, "--start");
+    find(out, k, "--start").start = number(v, "--start");
+  }
+  for (const auto& b : bounds) {
+    const auto [k, v] = keyValue(b, "--bounds");
+    const size_t colon = v.find(':');
+    if (colon == std::string::npos) throw InputError("", "--bounds", "expected key=lower:upper, got '" + b + "'");
+    auto& p = find(out, k, "--bounds");
+    p.lower = number(v.substr(0, colon), "--bounds");
+    p.upper = number(v.substr(colon + 1), "--bounds");
+  }
+  return out;
+}
+
 int calibrateCommand(const CalibrateOptions& o) {
   const bool bag = o.data.size() > 4 && o.data.substr(o.data.size() - 4) == ".bag";
   if (bag && (o.pose_topic.empty() || o.wrench_topic.empty()))
@@ -64,24 +88,7 @@ int calibrateCommand(const CalibrateOptions& o) {
   s.sets = o.sets;
   s.max_evaluations = o.max_evaluations;
   s.xtol_rel = o.xtol_rel;
-  for (const auto& list : o.fit) {
-    std::stringstream in(list);
-    std::string key;
-    while (std::getline(in, key, ','))
-      if (!key.empty()) s.parameters.push_back(CalibrationParameter{key});
-  }
-  for (const auto& st : o.starts) {
-    const auto [k, v] = keyValue(st, "--start");
-    find(s.parameters, k, "--start").start = number(v, "--start");
-  }
-  for (const auto& b : o.bounds) {
-    const auto [k, v] = keyValue(b, "--bounds");
-    const size_t colon = v.find(':');
-    if (colon == std::string::npos) throw InputError("", "--bounds", "expected key=lower:upper, got '" + b + "'");
-    auto& p = find(s.parameters, k, "--bounds");
-    p.lower = number(v.substr(0, colon), "--bounds");
-    p.upper = number(v.substr(colon + 1), "--bounds");
-  }
+  s.parameters = parseFitKeys(o.fit, o.starts, o.bounds);
   const Scene scene = loadScene(o.scene, o.sets);
   if (!o.needle.empty()) {
     s.needle = -1;

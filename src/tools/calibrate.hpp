@@ -5,6 +5,8 @@
 #include <string>
 #include <vector>
 
+#include "needle_sim/calibration/force_calibration.hpp"
+
 struct CalibrateOptions {
   std::string scene, data, out;
   std::vector<std::string> sets, fit, starts, bounds;
@@ -17,3 +19,8 @@ struct CalibrateOptions {
 };
 
 int calibrateCommand(const CalibrateOptions& o);
+
+// The keys of comma-separated lists with their --start key=value and --bounds key=lo:hi
+// (InputError naming the option: a malformed one, a key not in the lists).
+std::vector<needle_sim::CalibrationParameter> parseFitKeys(const std::vector<std::string>& lists, const std::vector<std::string>& starts,
+                                               const std::vector<std::string>& bounds);

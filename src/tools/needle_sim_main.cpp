@@ -41,6 +41,7 @@
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
+#include "assimilate.hpp"
 #include "bag_input.hpp"
 #include "bag_output.hpp"
 #include "bench.hpp"
@@ -66,12 +67,13 @@ struct BagRun {
 };
 
 int runCommand(const std::string& scene_path, const std::string& out_dir, const std::vector<std::string>& sets,
-               bool quiet, const RunRecorder::Options& options, const BagRun& bag_run) {
+               bool quiet, const RunRecorder::Options& options, const BagRun& bag_run, const AssimilateOptions& assimilate) {
   Scene scene;
   std::unique_ptr<Simulation> sim;
   std::unique_ptr<CommandReplay> replay;
   BagSession session;
   int bag_needle = 0;
+  std::unique_ptr<ForceAssimilation> assim;
   try {
     scene = loadScene(scene_path, sets);
     for (const std::string& w : sceneWarnings(scene)) std::cerr << "needle_sim: warning: " << w << '\n';
@@ -95,6 +97,13 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
     so.target_errors = options.target_error;
     sim = std::make_unique<Simulation>(scene, so);
     if (bag_run.given()) replay = std::make_unique<CommandReplay>(*sim, CommandLimits{}, session.commands);
+    if (!assimilate.given() && !assimilate.data.empty())
+      throw InputError("", "--data", "a measurement is for --assimilate KEYS (calibrate fits offline)");
+    if (assimilate.given()) {
+      if (scene.needles.empty()) throw InputError(scene_path, "--assimilate", "the scene has no needle whose force could be measured");
+      assim = makeAssimilation(assimilate, scene_path, sets, bag_needle, &session.force,
+                               bag_run.given() ? &session.commands : nullptr);
+    }
   } catch (const InputError& e) {
     std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
     return kExitInput;
@@ -131,6 +140,7 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
   const auto t_start = clock::now();
   auto t_report = t_start;
   std::vector<double> sim_t, sim_force;  // the bag's needle's axial force on its holder, for the measured one
+  bool assim_failed = false;
   for (long k = 0; k < n; ++k) {
     const auto t0 = clock::now();
     try {
@@ -143,6 +153,21 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
         sim_force.push_back(rec->observables().needles[bag_needle].axial_force);
       }
       if (bag_out) bag_out->record(*sim, ms);
+      // The measurement up to this step's time has arrived: the estimate at a checkpoint.
+      if (assim && !assim_failed) {
+        try {
+          if (assim->advance(sim->time()) > 0 && !quiet) {
+            const auto& k = assim->checkpoints().back();
+            std::cerr << "needle_sim: assimilation at t=" << k.t << " s (" << k.samples << " samples):";
+            for (size_t i = 0; i < k.values.size(); ++i)
+              std::cerr << ' ' << assim->parameters()[i].key << '=' << k.values[i] << " +- " << k.stds[i];
+            std::cerr << '\n';
+          }
+        } catch (const NumericalError& e) {  // the estimate's simulations, not the run's
+          assim_failed = true;
+          std::cerr << "needle_sim: assimilation stopped (its estimates so far are kept): " << e.what() << '\n';
+        }
+      }
     } catch (const NumericalError& e) {
       const double wall = std::chrono::duration<double>(clock::now() - t_start).count();
       rec->fail(wall, e.step(), e.what());
@@ -156,8 +181,16 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
       std::cerr << "needle_sim: step " << sim->stepIndex() << "/" << n << "  t=" << sim->time() << " s\n";
     }
   }
+  if (assim && !assim_failed) {
+    try {
+      assim->finish(sim->time());
+    } catch (const NumericalError& e) {
+      std::cerr << "needle_sim: assimilation stopped (its estimates so far are kept): " << e.what() << '\n';
+    }
+  }
   const double wall = std::chrono::duration<double>(clock::now() - t_start).count();
   rec->finish(wall);
+  if (assim) writeAssimilation(*assim, assimilate, out_dir, observableNames(*sim).targets);
   if (bag_out) {
     bag_out->close();
     std::printf("needle_sim: %ld messages written to %s\n", bag_out->messages(), bag_run.out_bag.c_str());
@@ -317,6 +350,18 @@ int main(int argc, char** argv) {
   run->add_option("--vtu-every", rec_opts.vtu_every,
                   "a ParaView series every N steps: DIR/vtu/, DIR/tissue.pvd, DIR/needles.pvd (0: none)")
       ->check(CLI::NonNegativeNumber);
+  AssimilateOptions assimilate;
+  run->add_option("--assimilate", assimilate.keys,
+                  "estimate these scene keys (comma-separated) online from the measured holder force (--data, or "
+                  "--bag with --wrench-topic): DIR/assimilation.csv, DIR/innovation.csv, summary.json assimilation")
+      ->delimiter(',');
+  run->add_option("--data", assimilate.data, "... the measurement: a CSV with t [s] and axial_force [N] (calibrate's)");
+  run->add_option("--noise", assimilate.noise, "... its noise, a standard deviation [N] (default: from the residuals)")
+      ->check(CLI::PositiveNumber);
+  run->add_option("--assimilate-every", assimilate.every, "... a checkpoint every S seconds of data (default: a tenth)")
+      ->check(CLI::PositiveNumber);
+  run->add_option("--start", assimilate.starts, "... a key's start: key=value (default: the scene's value)");
+  run->add_option("--bounds", assimilate.bounds, "... a key's bounds: key=lower:upper (default: its declared range)");
 
   std::vector<std::string> key_sections;
   bool keys_markdown = false;
@@ -450,7 +495,7 @@ int main(int argc, char** argv) {
     return code == 0 ? 0 : kExitInput;
   }
   try {
-    if (*run) return runCommand(scene_path, out_dir, sets, quiet, rec_opts, bag_run);
+    if (*run) return runCommand(scene_path, out_dir, sets, quiet, rec_opts, bag_run, assimilate);
     if (*check) return checkCommand(check_opts);
     if (*keys) return keysCommand(key_sections, keys_markdown);
     if (*bench) return benchCommand(bench_opts);

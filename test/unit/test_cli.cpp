@@ -396,7 +396,7 @@ TEST(Cli, CalibrateRejectsBadInputsWithStatus2) {
       {"--data '" + good + "' --fit solver.linear.method", "not a number"},
       {"--data '" + good + "' --fit interaction.no_such_key --start interaction.no_such_key=1", "no_such_key"},
       {"--data '" + good + "' --fit needle.elements", "real-valued"},
-      {"--data '" + good + "' --fit interaction.cutting_force --start interaction.friction=1", "not among the --fit"},
+      {"--data '" + good + "' --fit interaction.cutting_force --start interaction.friction=1", "not among the keys to fit"},
       {"--data '" + good + "' --fit interaction.cutting_force --bounds interaction.cutting_force=0.5:0.6", "outside"},
       {"--data '" + file("rec.bag", "") + "' --fit interaction.cutting_force", "needs --pose-topic"},
       {"--data '" + file("rec2.bag", "") + "' --fit interaction.cutting_force --pose-topic a --wrench-topic b", "cannot read the bag"},
@@ -673,4 +673,62 @@ TEST(Cli, CheckAimPutsTheDeepestKeyframesTipOnTheTarget) {
   EXPECT_EQ(runTool("check '" + scene + "' --aim 0 0 0 1 1").status, 2);            // five numbers
   EXPECT_EQ(runTool("check '" + scene + "' --aim 0 0 0 1 1 1 --aim-needles drill").status, 2);
   EXPECT_EQ(runTool("check '" + scene + "' --aim-needles needle").status, 2);        // without --aim
+}
+
+// run --assimilate: bad options and data are exit 2 naming the option; a measurement with a
+// NaN row and a stale row is read with those counted, and the outputs carry an estimate per
+// checkpoint, every sample's innovation and summary.json's assimilation section.
+TEST(Cli, RunAssimilateRejectsBadInputsAndWritesItsOutputs) {
+  const fs::path d = freshDir("assimilate");
+  fs::create_directories(d);
+  auto file = [&](const std::string& name, const std::string& text) {
+    std::ofstream(d / name) << text;
+    return (d / name).string();
+  };
+  const std::string scene = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml --set time.dt=0.002 --set time.duration=0.9";
+  const std::string out = " --out '" + (d / "out").string() + "' --quiet";
+  std::string csv = "t,axial_force\n";
+  for (int i = 1; i <= 45; ++i) {
+    char b[80];
+    std::snprintf(b, sizeof b, "%.3f,%.6f\n", 0.02 * i, i < 20 ? 0.0 : -0.01 - 0.0005 * (i % 3));
+    csv += b;
+    if (i == 10) csv += "0.205,nan\n";
+    if (i == 30) csv += "0.600,0.5\n";  // stale: the time of the row before
+  }
+  const std::string good = file("good.csv", csv);
+  struct Case {
+    std::string args, expect;
+  };
+  const std::vector<Case> cases = {
+      {"--data '" + good + "'", "--assimilate"},
+      {"--assimilate interaction.cutting_force", "--data"},
+      {"--assimilate interaction.cutting_force --data '" + (d / "missing.csv").string() + "'", "cannot read"},
+      {"--assimilate interaction.cutting_force --data '" + file("nocol.csv", "t,force\n0,1\n1,2\n") + "'", "axial_force"},
+      {"--assimilate interaction.cutting_force --data '" + file("text.csv", "t,axial_force\n0,1\n1,abc\n") + "'", "finite"},
+      {"--assimilate interaction.no_such_key --data '" + good + "'", "no_such_key"},
+      {"--assimilate interaction.cutting_force --start interaction.friction=1 --data '" + good + "'", "not among the keys"},
+      {"--assimilate interaction.cutting_force --noise -1 --data '" + good + "'", "--noise"},
+  };
+  for (const auto& c : cases) {
+    SCOPED_TRACE(c.args);
+    const Result r = runTool("run " + scene + " " + c.args + out);
+    EXPECT_EQ(r.status, 2) << r.err;
+    EXPECT_NE(r.err.find(c.expect), std::string::npos) << r.err;
+  }
+  const Result r = runTool("run " + scene + " --assimilate interaction.cutting_force --noise 0.0005 --assimilate-every 0.3 "
+                           "--data '" + good + "'" + out);
+  ASSERT_EQ(r.status, 0) << r.err;
+  const auto a = readColumns(d / "out" / "assimilation.csv");
+  ASSERT_EQ(a.count("interaction.cutting_force_std"), 1u);
+  EXPECT_EQ(a.at("t").size(), 3u);  // 0.3, 0.6 and the record's end 0.9
+  const auto inn = readColumns(d / "out" / "innovation.csv");
+  EXPECT_EQ(inn.at("t").size(), 45u);
+  std::ifstream sj(d / "out" / "summary.json");
+  const nlohmann::json j = nlohmann::json::parse(sj);
+  const auto& p = j.at("assimilation").at("parameters").at("interaction.cutting_force");
+  EXPECT_NEAR(p.at("value").get<double>(), std::stod(a.at("interaction.cutting_force").back()), 1e-9);
+  EXPECT_TRUE(p.at("std").is_number());
+  EXPECT_EQ(j.at("assimilation").at("rejected").at("nonfinite").get<int>(), 1);
+  EXPECT_EQ(j.at("assimilation").at("rejected").at("stale").get<int>(), 1);
+  EXPECT_EQ(j.at("status"), "ok");  // the run's own summary is still there
 }

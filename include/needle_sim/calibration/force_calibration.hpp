@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "needle_sim/calibration/force_record.hpp"
+#include "needle_sim/core/types.hpp"
 #include "needle_sim/sim/command_replay.hpp"
 
 namespace needle_sim {
@@ -32,6 +33,14 @@ struct CalibrationParameter {
   double start = std::numeric_limits<double>::quiet_NaN();
   double lower = std::numeric_limits<double>::quiet_NaN();
   double upper = std::numeric_limits<double>::quiet_NaN();
+  // BOBYQA's initial trust radius in the key's units; NaN: a quarter of the start's scale
+  // (a warm start with a known standard deviation takes a few of those).
+  double initial_step = std::numeric_limits<double>::quiet_NaN();
+  // The search's unit for the key; NaN: |start| (1 for a start of 0). A warm start keeps the
+  // nominal value's.
+  double scale = std::numeric_limits<double>::quiet_NaN();
+  // An absolute stop on the key's change (its units), besides xtol_rel; NaN: none.
+  double tolerance = std::numeric_limits<double>::quiet_NaN();
 };
 
 struct CalibrationSettings {
@@ -42,6 +51,9 @@ struct CalibrationSettings {
   int max_evaluations = 200;
   double xtol_rel = 1e-3;  // BOBYQA's stop on the parameters, relative to their scale
   int threads = 2;         // Jacobian evaluations in parallel
+  // The measurement's noise (standard deviation [N]): the covariance's s^2 when given; NaN:
+  // s^2 = RSS / (m - n), the residuals' own estimate.
+  double noise = std::numeric_limits<double>::quiet_NaN();
   // A recorded session's commands (a bag): they drive the needle through the command guard
   // instead of the scene's motion. Empty: the scene's motion.
   std::vector<RecordedCommand> commands;
@@ -52,6 +64,7 @@ struct CalibrationSettings {
 // axis, at every step.
 struct SimulatedForce {
   std::vector<double> t, force, advance;
+  std::vector<Vec3> target_end;  // the targets' positions at the last step run
   bool failed = false;
   std::string failure;
 };
@@ -59,8 +72,10 @@ struct SimulatedForce {
 struct CalibrationResult {
   std::vector<CalibrationParameter> parameters;  // resolved starts and bounds
   std::vector<double> values, std_errors;        // std error +inf: not identifiable
+  Eigen::MatrixXd covariance;                    // s^2 (J^T J)^+ in the keys' units (see std_errors)
   std::vector<bool> identifiable;
   double rms_start = 0, rms = 0;  // RMS residual [N] at the start and the fit
+  VecX residuals_fit;             // fitted - measured at the samples inside the simulated time
   int residuals = 0;              // measured samples inside the simulated time
   int evaluations = 0, failed_evaluations = 0, jacobian_evaluations = 0;
   double wall_s = 0;

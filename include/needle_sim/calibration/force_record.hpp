@@ -14,9 +14,18 @@ struct ForceRecord {
   std::vector<double> t, force;
 };
 
+// Rows a measurement stream may carry and an estimator must survive (assimilation): a
+// non-finite value (a sensor dropout written as nan/inf) and a stale row (a time not after the
+// last accepted one).
+struct ForceCsvRejects {
+  long nonfinite = 0, stale = 0;
+};
+
 // Throws InputError(file, column, problem) for a file that cannot be read, a missing column,
-// a value that is not a finite number, times that do not increase strictly, fewer than 2 rows.
-ForceRecord readForceCsv(const std::string& path);
+// a value that is not a number, fewer than 2 rows; and, unless `rejects` is given, for a
+// non-finite value or times that do not increase strictly. With `rejects`, such rows are
+// skipped and counted there instead.
+ForceRecord readForceCsv(const std::string& path, ForceCsvRejects* rejects = nullptr);
 
 // Linear interpolation of (t, y) at time x, clamped at the ends; t strictly increasing.
 double interpolate(const std::vector<double>& t, const std::vector<double>& y, double x);

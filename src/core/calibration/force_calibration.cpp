@@ -65,7 +65,10 @@ std::string rejects(const CalibrationSettings& s, const std::string& key, double
   return "";
 }
 
-double scaleOf(const CalibrationParameter& p) { return std::abs(p.start) > 0 ? std::abs(p.start) : 1.0; }
+double scaleOf(const CalibrationParameter& p) {
+  if (std::isfinite(p.scale) && p.scale > 0) return p.scale;
+  return std::abs(p.start) > 0 ? std::abs(p.start) : 1.0;
+}
 
 }  // namespace
 
@@ -162,6 +165,7 @@ SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<s
       r.advance.push_back((b.position - p0.position).dot(p0.direction));
       if (!std::isfinite(r.force.back())) throw NumericalError(k, "non-finite holder force");
     }
+    for (const TargetObservation& t : o.targets) r.target_end.push_back(t.position);
   } catch (const NumericalError& e) {
     r.failed = true;
     r.failure = e.what();
@@ -263,6 +267,8 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
     lb[i] = pr.p[i].lower / pr.scale[i];
     ub[i] = pr.p[i].upper / pr.scale[i];
     step[i] = std::min(0.25, 0.4 * (ub[i] - lb[i]));
+    if (std::isfinite(pr.p[i].initial_step) && pr.p[i].initial_step > 0)
+      step[i] = std::min(step[i], std::max(1e-3, pr.p[i].initial_step / pr.scale[i]));
   }
   std::vector<double> start(n);
   for (size_t i = 0; i < n; ++i) start[i] = pr.p[i].start;
@@ -283,6 +289,10 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
   nlopt_set_upper_bounds(opt, ub.data());
   nlopt_set_initial_step(opt, step.data());
   nlopt_set_xtol_rel(opt, s.xtol_rel);
+  std::vector<double> xtol_abs(n, 0.0);
+  for (size_t i = 0; i < n; ++i)
+    if (std::isfinite(pr.p[i].tolerance) && pr.p[i].tolerance > 0) xtol_abs[i] = pr.p[i].tolerance / pr.scale[i];
+  nlopt_set_xtol_abs(opt, xtol_abs.data());
   nlopt_set_maxeval(opt, s.max_evaluations);
   nlopt_set_min_objective(opt, objective, &pr);
   double cost = 0;
@@ -297,6 +307,7 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
   r.fitted_run = pr.run(r.values);
   const VecX rf = pr.residuals(r.fitted_run);
   r.rms = std::sqrt(rf.squaredNorm() / r.residuals);
+  r.residuals_fit = rf;
 
   // Central-difference Jacobian of the residuals at the fit (one-sided at a bound), the runs
   // in parallel; steps of 1 % of each parameter's scale.
@@ -343,7 +354,7 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
     J.col(static_cast<Eigen::Index>(i)) = (pr.residuals(plus[i]) - pr.residuals(minus[i])) / (hp[i] + hm[i]);
   }
   const double dof = std::max(1, r.residuals - static_cast<int>(n));
-  const double s2 = rf.squaredNorm() / dof;
+  const double s2 = std::isfinite(s.noise) && s.noise > 0 ? s.noise * s.noise : rf.squaredNorm() / dof;
   // (J^T J)^-1 in the parameters' scales, by eigen-decomposition: directions with an
   // eigenvalue below 1e-10 of the largest are not determined by the data.
   Eigen::MatrixXd D = Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(n));
@@ -363,6 +374,7 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
         if (std::abs(q[static_cast<Eigen::Index>(i)]) > 1e-3) undetermined[i] = true;
     }
   }
+  r.covariance = s2 * D * inv * D;
   for (size_t i = 0; i < n; ++i) {
     const double se = undetermined[i] ? std::numeric_limits<double>::infinity()
                                       : pr.scale[i] * std::sqrt(s2 * inv(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(i)));

@@ -26,7 +26,7 @@ std::vector<std::string> splitCsv(const std::string& line) {
 }
 }  // namespace
 
-ForceRecord readForceCsv(const std::string& path) {
+ForceRecord readForceCsv(const std::string& path, ForceCsvRejects* rejects) {
   std::ifstream f(path);
   if (!f) throw InputError(path, "", "cannot read the force record");
   std::string line;
@@ -44,20 +44,32 @@ ForceRecord readForceCsv(const std::string& path) {
     ++row;
     if (line.find_first_not_of(" \t\r") == std::string::npos) continue;
     const auto cells = splitCsv(line);
+    bool finite = true;
     auto number = [&](size_t c, const std::string& name) {
       if (c >= cells.size()) throw InputError(path, name, "row " + std::to_string(row) + " has no value");
       const char* s = cells[c].c_str();
       char* end = nullptr;
       errno = 0;
       const double v = std::strtod(s, &end);
-      if (end == s || *end != '\0' || errno == ERANGE || !std::isfinite(v))
+      const bool parsed = end != s && *end == '\0';
+      if (parsed && rejects && !std::isfinite(v)) finite = false;
+      else if (!parsed || errno == ERANGE || !std::isfinite(v))
         throw InputError(path, name, "row " + std::to_string(row) + ": '" + cells[c] + "' is not a finite number");
       return v;
     };
     const double t = number(ct, "t"), y = number(cf, "axial_force");
-    if (!r.t.empty() && !(t > r.t.back()))
+    if (!finite) {
+      ++rejects->nonfinite;
+      continue;
+    }
+    if (!r.t.empty() && !(t > r.t.back())) {
+      if (rejects) {
+        ++rejects->stale;
+        continue;
+      }
       throw InputError(path, "t", "row " + std::to_string(row) + ": times must increase strictly (" +
                                       std::to_string(t) + " after " + std::to_string(r.t.back()) + ")");
+    }
     r.t.push_back(t);
     r.force.push_back(y);
   }

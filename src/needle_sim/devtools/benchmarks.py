@@ -495,6 +495,8 @@ BENCHMARKS = [
      "dbs_sensitivity; the 4 mm reference runs are reused when present, about 2 h when not)", 150, True,
      study("dbs_study.py", ["--out", "results/dbs_study", "--reuse", "--reference", "--sensitivity", "--jobs", "2"],
            150)),
+    ("assimilation", "twin experiments of run --assimilate: the phantom over 10 seeds and a DBS scene (writes its "
+     "block)", 35, True, study("assimilation_study.py", ["--out", "results/assimilation_study", "--dbs"], 35)),
     ("ci", ".ci/run on a clean clone: the phase times", 60, True, ci),
 ]
 

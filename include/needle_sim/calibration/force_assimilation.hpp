@@ -1,0 +1,92 @@
+#pragma once
+// Online estimation of uncertain scene parameters from a measured holder force, as it arrives
+// (doc/calibration.md#assimilation, `needle_sim run SCENE --data FILE --assimilate KEYS`).
+//
+// A causal, expanding-window least-squares estimator on calibrate's machinery
+// (force_calibration.hpp): at every checkpoint t_k (a fixed spacing of the data's time) the
+// keys are fitted to the samples with t <= t_k only, BOBYQA warm-started from the previous
+// estimate within the keys' bounds, and the covariance is s^2 (J^T J)^-1 at the fit, s the
+// stated noise (or, not stated, the residuals' own estimate). Because the needle-tissue model is quasi-static and deterministic, the fit over
+// the whole window is the maximum-likelihood estimate given the data so far (Gaussian noise);
+// a recursive filter would linearise what the window fit solves exactly.
+//
+// Robustness: rows with a non-finite value or a stale time are skipped and counted by the
+// reader; a sample whose residual at the fit exceeds `outlier_gate` times the larger of the
+// stated noise and the residuals' robust scale (1.4826 median |residual|) is rejected (counted, never used again) and the window refitted. A fit whose residuals stay
+// well above the stated noise (RMS > 1.5 sigma, 10 samples or more) is flagged inconsistent:
+// the model does not fit the measurement, and the estimate must not be trusted silently.
+//
+// At each checkpoint the scene is also run to its end with the estimate: the targets' final
+// positions, and their covariance from the parameters' (G Cov G^T, G by forward differences).
+#include <cmath>
+#include <string>
+#include <vector>
+
+#include "needle_sim/calibration/force_calibration.hpp"
+#include "needle_sim/core/types.hpp"
+
+namespace needle_sim {
+
+struct AssimilationSettings {
+  CalibrationSettings fit;  // scene, sets, keys (starts: the nominal values), needle, commands, noise
+  double every = 0;         // checkpoint spacing [s of data]; <= 0: a tenth of the data's span
+  double outlier_gate = 10; // residual / noise beyond which a sample is rejected
+  bool predict_targets = true;
+};
+
+struct AssimilationCheckpoint {
+  double t = 0;                  // the estimate uses the samples with time <= t
+  int samples = 0;               // samples used (outliers excluded)
+  int new_samples = 0;           // since the previous checkpoint
+  std::vector<double> values;    // per key
+  std::vector<double> stds;      // +inf: the data do not determine the key yet
+  double rms = 0;                // RMS residual at the fit [N]
+  double innovation_rms = 0;     // the new samples against the previous estimate's prediction [N]
+  bool consistent = true;        // rms <= 1.5 noise (or too few samples to tell)
+  int evaluations = 0;           // simulations of the fit, its Jacobian and the target prediction
+  double wall_s = 0;
+  std::vector<Vec3> target_end;  // per target: its position at the scene's end with the estimate
+  std::vector<Mat3> target_cov;  // ... its covariance from the parameters' [m^2]
+};
+
+struct AssimilationSample {
+  double t = 0, measured = 0;
+  double predicted = 0;  // by the estimate in force before the sample arrived (causal)
+  bool rejected = false;
+};
+
+class ForceAssimilation {
+ public:
+  // `data` as read (readForceCsv with rejects); the noise NaN (not stated) or > 0.
+  ForceAssimilation(AssimilationSettings s, ForceRecord data);
+
+  // The measurement has arrived up to time t: a checkpoint (a refit) at every checkpoint time
+  // passed with enough samples. Returns the number of checkpoints made.
+  int advance(double t);
+  // The run ended at time t: a last checkpoint at min(t, the data's end) if samples arrived
+  // since the last one.
+  void finish(double t);
+
+  const std::vector<CalibrationParameter>& parameters() const { return params_; }
+  const std::vector<AssimilationCheckpoint>& checkpoints() const { return checkpoints_; }
+  const std::vector<AssimilationSample>& samples() const { return samples_; }
+  std::vector<double> values() const;  // the latest estimate (the nominal values before the first)
+  long outliers() const { return outliers_; }
+  double every() const { return every_; }
+
+ private:
+  void checkpoint(double t);
+  bool stated() const { return !std::isnan(s_.fit.noise); }
+  SimulatedForce run(const std::vector<double>& v, double until) const;
+
+  AssimilationSettings s_;
+  ForceRecord data_;
+  std::vector<CalibrationParameter> params_;
+  std::vector<AssimilationSample> samples_;
+  std::vector<AssimilationCheckpoint> checkpoints_;
+  double every_ = 0, next_ = 0, fitted_until_ = -1;
+  long outliers_ = 0;
+  SimulatedForce prediction_;  // the latest estimate's run over the whole scene
+};
+
+}  // namespace needle_sim

@@ -1,0 +1,129 @@
+#include "assimilate.hpp"
+
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "calibrate.hpp"
+#include "needle_sim/core/error.hpp"
+
+using namespace needle_sim;
+
+namespace {
+ForceCsvRejects g_rejects;  // the data file's skipped rows (one run per process)
+
+nlohmann::json finiteOrNull(double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); }
+}  // namespace
+
+std::unique_ptr<ForceAssimilation> makeAssimilation(const AssimilateOptions& o, const std::string& scene,
+                                                    const std::vector<std::string>& sets, int needle,
+                                                    const ForceRecord* bag_force,
+                                                    const std::vector<RecordedCommand>* commands) {
+  AssimilationSettings s;
+  s.fit.scene = scene;
+  s.fit.sets = sets;
+  s.fit.needle = needle;
+  s.fit.noise = o.noise;
+  s.every = o.every;
+  if (commands) s.fit.commands = *commands;
+  s.fit.parameters = parseFitKeys(o.keys, o.starts, o.bounds);
+  ForceRecord data;
+  if (!o.data.empty()) {
+    data = readForceCsv(o.data, &g_rejects);
+  } else if (bag_force && !bag_force->t.empty()) {
+    data = *bag_force;
+  } else {
+    throw InputError("", "--data", "--assimilate needs the measurement: --data FILE.csv, or --bag with --wrench-topic");
+  }
+  return std::make_unique<ForceAssimilation>(std::move(s), std::move(data));
+}
+
+void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, const std::string& out_dir,
+                       const std::vector<std::string>& target_names) {
+  const auto& p = a.parameters();
+  const auto& cps = a.checkpoints();
+  {
+    std::ofstream f(out_dir + "/assimilation.csv");
+    if (!f) throw std::runtime_error("cannot write " + out_dir + "/assimilation.csv");
+    f.precision(10);
+    f << "t,samples,new_samples";
+    for (const auto& q : p) f << ',' << q.key << ',' << q.key << "_std";
+    f << ",rms_residual,innovation_rms,consistent";
+    for (const auto& n : target_names)
+      for (const char* c : {"x", "y", "z"}) f << ',' << n << "_end_" << c;
+    for (const auto& n : target_names)
+      for (const char* c : {"x", "y", "z"}) f << ',' << n << "_end_std_" << c;
+    f << ",evaluations,wall_s\n";
+    for (const auto& k : cps) {
+      f << k.t << ',' << k.samples << ',' << k.new_samples;
+      for (size_t i = 0; i < p.size(); ++i) f << ',' << k.values[i] << ',' << k.stds[i];
+      f << ',' << k.rms << ',' << k.innovation_rms << ',' << (k.consistent ? 1 : 0);
+      for (const auto& x : k.target_end) f << ',' << x[0] << ',' << x[1] << ',' << x[2];
+      for (const auto& c : k.target_cov) f << ',' << std::sqrt(c(0, 0)) << ',' << std::sqrt(c(1, 1)) << ',' << std::sqrt(c(2, 2));
+      f << ',' << k.evaluations << ',' << k.wall_s << '\n';
+    }
+  }
+  {
+    std::ofstream f(out_dir + "/innovation.csv");
+    if (!f) throw std::runtime_error("cannot write " + out_dir + "/innovation.csv");
+    f.precision(10);
+    f << "t,measured,predicted,innovation,rejected\n";
+    for (const auto& x : a.samples())
+      f << x.t << ',' << x.measured << ',' << x.predicted << ',' << x.measured - x.predicted << ',' << (x.rejected ? 1 : 0)
+        << '\n';
+  }
+  nlohmann::json params = nlohmann::json::object();
+  const std::vector<double> v = a.values();
+  for (size_t i = 0; i < p.size(); ++i)
+    params[p[i].key] = {{"value", v[i]},
+                        {"std", cps.empty() ? nlohmann::json(nullptr) : finiteOrNull(cps.back().stds[i])},
+                        {"start", p[i].start},
+                        {"lower", p[i].lower},
+                        {"upper", p[i].upper}};
+  nlohmann::json targets = nlohmann::json::object();
+  if (!cps.empty())
+    for (size_t j = 0; j < target_names.size() && j < cps.back().target_end.size(); ++j) {
+      const Vec3& x = cps.back().target_end[j];
+      const Mat3& c = cps.back().target_cov[j];
+      nlohmann::json cov = nlohmann::json::array();
+      for (int r = 0; r < 3; ++r)
+        for (int q = 0; q < 3; ++q) cov.push_back(finiteOrNull(c(r, q)));
+      targets[target_names[j]] = {{"end_position", {x[0], x[1], x[2]}}, {"end_covariance", cov}};
+    }
+  int inconsistent = 0;
+  for (const auto& k : cps) inconsistent += k.consistent ? 0 : 1;
+  const nlohmann::json section = {
+      {"data", o.data},
+      {"noise", finiteOrNull(o.noise)},
+      {"every_s", a.every()},
+      {"checkpoints", cps.size()},
+      {"parameters", params},
+      {"targets", targets},
+      {"samples", a.samples().size()},
+      {"rejected", {{"nonfinite", g_rejects.nonfinite}, {"stale", g_rejects.stale}, {"outliers", a.outliers()}}},
+      {"rms_residual", cps.empty() ? nlohmann::json(nullptr) : nlohmann::json(cps.back().rms)},
+      {"consistent", cps.empty() || cps.back().consistent},
+      {"inconsistent_checkpoints", inconsistent}};
+  const std::string path = out_dir + "/summary.json";
+  nlohmann::json j;
+  {
+    std::ifstream in(path);
+    if (in) in >> j;
+  }
+  j["assimilation"] = section;
+  std::ofstream(path) << j.dump(2) << '\n';
+
+  std::printf("needle_sim: assimilation of %s: %zu checkpoints, %zu samples (%ld non-finite and %ld stale rows skipped, "
+              "%ld outliers rejected)\n",
+              o.data.empty() ? "the bag's wrench" : o.data.c_str(), cps.size(), a.samples().size(), g_rejects.nonfinite,
+              g_rejects.stale, a.outliers());
+  for (size_t i = 0; i < p.size(); ++i) {
+    const double sd = cps.empty() ? NAN : cps.back().stds[i];
+    std::printf("  %-32s %.6g +- %.3g (nominal %.6g)\n", p[i].key.c_str(), v[i], sd, p[i].start);
+  }
+  if (!cps.empty() && !cps.back().consistent)
+    std::fprintf(stderr, "needle_sim: WARNING: the fit's residuals (RMS %.3g N) exceed the stated noise %.3g N by more "
+                         "than 1.5x: the model does not fit the measurement; do not trust the estimate\n",
+                 cps.back().rms, o.noise);
+}
