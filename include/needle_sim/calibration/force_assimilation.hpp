@@ -78,6 +78,7 @@ class ForceAssimilation {
   void checkpoint(double t);
   bool stated() const { return !std::isnan(s_.fit.noise); }
   SimulatedForce run(const std::vector<double>& v, double until) const;
+  double end() const;  // the time a run "to the end" stops at
 
   AssimilationSettings s_;
   ForceRecord data_;

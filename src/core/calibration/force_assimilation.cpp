@@ -37,8 +37,17 @@ ForceAssimilation::ForceAssimilation(AssimilationSettings s, ForceRecord data) :
   for (size_t i = 0; i < data_.t.size(); ++i) samples_.push_back({data_.t[i], data_.force[i], 0.0, false});
   std::vector<double> v;
   for (const auto& p : params_) v.push_back(p.start);
-  prediction_ = run(v, kUntilEnd);
+  prediction_ = run(v, end());
   if (prediction_.failed) throw NumericalError(0, "the simulation fails at the nominal values: " + prediction_.failure);
+}
+
+double ForceAssimilation::end() const {
+  // The scene's duration; a recorded session's commands last as long as the record (and its
+  // last command).
+  if (s_.fit.commands.empty()) return kUntilEnd;
+  double e = data_.t.back();
+  for (const auto& c : s_.fit.commands) e = std::max(e, c.received);
+  return e;
 }
 
 std::vector<double> ForceAssimilation::values() const {
@@ -149,7 +158,7 @@ void ForceAssimilation::checkpoint(double t) {
   k.consistent = !stated() || k.samples < 10 || r.rms <= 1.5 * s_.fit.noise;
 
   // The scene to its end with the estimate: the next samples' prediction and the targets'.
-  prediction_ = run(k.values, kUntilEnd);
+  prediction_ = run(k.values, end());
   ++evaluations;
   if (prediction_.failed) throw NumericalError(0, "the simulation fails at the estimate: " + prediction_.failure);
   const size_t nt = prediction_.target_end.size();
@@ -170,7 +179,7 @@ void ForceAssimilation::checkpoint(double t) {
         if (k.values[i] + h > params_[i].upper) h = -h;
         std::vector<double> v = k.values;
         v[i] += h;
-        const SimulatedForce f = run(v, kUntilEnd);
+        const SimulatedForce f = run(v, end());
         ++evaluations;
         if (f.failed || f.target_end.size() != nt) {
           for (auto& m : k.target_cov) m = Mat3::Identity() * kInf;
