@@ -12,7 +12,8 @@ BUILD="$SANITIZED_BUILD"
 # The unit tests only (the rostest nodes, the stability sweep and the soak, slow under ASan,
 # stay in the regular build).
 UNIT=(test_fem test_solver test_verification test_scene test_beam test_interaction test_spr test_refinement
-      test_adaptivity test_sim_parts test_immersed test_prediction test_cli test_command_guard test_pieces test_goal_estimate test_constraint_solve test_calibration)
+      test_adaptivity test_sim_parts test_immersed test_prediction test_cli test_command_guard test_pieces test_goal_estimate test_constraint_solve test_calibration
+      test_assimilation)
 cmake --build "$BUILD" -j"$(nproc)" --target "${UNIT[@]}" fuzz_scene_replay fuzz_mesh_replay needle_sim_tool tutorial_00_library \
   test_node_threads >&2
 cd "$BUILD"
