@@ -298,6 +298,9 @@ TEST(Cli, SteerPlansABevelAndRefusesASymmetricTip) {
   r = runTool("steer " + scene + " --set needle.bevel.angle=0.5 --target 0.05 0.01 0.01");
   EXPECT_EQ(r.status, 2);
   EXPECT_NE(r.err.find("steer.target"), std::string::npos) << r.err;
+#ifdef NEEDLE_SIM_SANITIZED
+  return;  // two plans of 80 s each under the sanitizers: test_prediction's Steering runs the planner there
+#endif
   const fs::path out = freshDir("steer");
   fs::create_directories(out);
   r = runTool("steer " + scene + " --set needle.bevel.angle=0.5235987755982988 --set interaction.shaft_spacing=0.0005"
