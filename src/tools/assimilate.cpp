@@ -70,7 +70,8 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
     f.precision(10);
     f << "t,measured,predicted,innovation,rejected\n";
     for (const auto& x : a.samples())
-      f << x.t << ',' << x.measured << ',' << x.predicted << ',' << x.measured - x.predicted << ',' << (x.rejected ? 1 : 0)
+      if (x.arrived)  // the samples after the run's end were never predicted nor used
+        f << x.t << ',' << x.measured << ',' << x.predicted << ',' << x.measured - x.predicted << ',' << (x.rejected ? 1 : 0)
         << '\n';
   }
   nlohmann::json params = nlohmann::json::object();

@@ -99,6 +99,8 @@ TEST(Assimilation, RecoversHiddenValuesCausally) {
     if (mixed.t[i] > cps[1].t + 1e-9) mixed.force[i] = other.force[i] - 0.01;
   const ForceAssimilation b = runTo(settings(kNoise), mixed, cps[1].t);
   ASSERT_EQ(b.checkpoints().size(), 2u);
+  // What it has seen: the samples up to the second checkpoint, none after it.
+  for (const auto& x : b.samples()) EXPECT_EQ(x.arrived, x.t <= cps[1].t + 1e-9) << x.t;
   for (int k = 0; k < 2; ++k)
     for (int i = 0; i < 2; ++i) EXPECT_EQ(b.checkpoints()[k].values[i], cps[k].values[i]);
 }
@@ -146,7 +148,8 @@ TEST(Assimilation, RejectsBadMeasurementsWithoutBeingMovedByThem) {
 }
 
 // Data 10 x noisier than stated: every checkpoint with enough samples says the model does not
-// fit; stated as it is, none does.
+// fit, and its standard deviations are the residuals' (not 10 x too small); stated as it is,
+// none does.
 TEST(Assimilation, SaysWhenTheResidualsExceedTheStatedNoise) {
 #ifdef NEEDLE_SIM_SANITIZED
   GTEST_SKIP() << "calibrate's path runs under the sanitizers in test_calibration";
@@ -162,6 +165,15 @@ TEST(Assimilation, SaysWhenTheResidualsExceedTheStatedNoise) {
   ForceAssimilation right = runTo(s, data, 2.3);
   right.finish(2.3);
   for (const auto& k : right.checkpoints()) EXPECT_TRUE(k.consistent) << k.t;
+  // The same record: the inflated deviations are the stated-as-it-is ones to within the
+  // residuals' sampling (stated 10 x too small and not inflated, they would be a tenth).
+  const auto &w = wrong.checkpoints().back(), &g = right.checkpoints().back();
+  ASSERT_EQ(w.stds.size(), g.stds.size());
+  for (size_t i = 0; i < w.stds.size(); ++i) {
+    std::printf("%s: std %.4g (stated 10 x too small, inflated) against %.4g (stated as it is)\n",
+                wrong.parameters()[i].key.c_str(), w.stds[i], g.stds[i]);
+    EXPECT_NEAR(w.stds[i] / g.stds[i], 1.0, 0.3) << wrong.parameters()[i].key;
+  }
 }
 
 TEST(Assimilation, RejectsANoiseThatIsNotAPositiveNumber) {

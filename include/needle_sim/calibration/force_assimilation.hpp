@@ -14,7 +14,9 @@
 // reader; a sample whose residual at the fit exceeds `outlier_gate` times the larger of the
 // stated noise and the residuals' robust scale (1.4826 median |residual|) is rejected (counted, never used again) and the window refitted. A fit whose residuals stay
 // well above the stated noise (RMS > 1.5 sigma, 10 samples or more) is flagged inconsistent:
-// the model does not fit the measurement, and the estimate must not be trusted silently.
+// the model does not fit the measurement, and the estimate must not be trusted silently; its
+// covariance then takes the residuals' own scale (RSS / (m - n)) instead of the stated noise's,
+// and the next checkpoint's search is not confined to its deviations.
 //
 // At each checkpoint the scene is also run to its end with the estimate: the targets' final
 // positions, and their covariance from the parameters' (G Cov G^T, G by forward differences).
@@ -39,7 +41,7 @@ struct AssimilationCheckpoint {
   int samples = 0;               // samples used (outliers excluded)
   int new_samples = 0;           // since the previous checkpoint
   std::vector<double> values;    // per key
-  std::vector<double> stds;      // +inf: the data do not determine the key yet
+  std::vector<double> stds;      // +inf: the data do not determine the key yet; inconsistent: inflated
   double rms = 0;                // RMS residual at the fit [N]
   double innovation_rms = 0;     // the new samples against the previous estimate's prediction [N]
   bool consistent = true;        // rms <= 1.5 noise (or too few samples to tell)
@@ -52,6 +54,7 @@ struct AssimilationCheckpoint {
 struct AssimilationSample {
   double t = 0, measured = 0;
   double predicted = 0;  // by the estimate in force before the sample arrived (causal)
+  bool arrived = false;  // reached a checkpoint: a sample after the run's end never does
   bool rejected = false;
 };
 

@@ -34,7 +34,7 @@ ForceAssimilation::ForceAssimilation(AssimilationSettings s, ForceRecord data) :
   every_ = s_.every > 0 ? s_.every : (data_.t.back() - data_.t.front()) / 10;
   if (!(every_ > 0)) throw InputError("", "--assimilate-every", "the data span no time");
   next_ = data_.t.front() + every_;
-  for (size_t i = 0; i < data_.t.size(); ++i) samples_.push_back({data_.t[i], data_.force[i], 0.0, false});
+  for (size_t i = 0; i < data_.t.size(); ++i) samples_.push_back({data_.t[i], data_.force[i], 0.0, false, false});
   std::vector<double> v;
   for (const auto& p : params_) v.push_back(p.start);
   prediction_ = run(v, end());
@@ -90,6 +90,7 @@ void ForceAssimilation::checkpoint(double t) {
   for (auto& x : samples_)
     if (x.t > fitted_until_ + 1e-12 && x.t <= t + 1e-12) {
       x.predicted = interpolate(prediction_.t, prediction_.force, x.t);
+      x.arrived = true;
       innovation2 += (x.measured - x.predicted) * (x.measured - x.predicted);
       ++fresh;
     }
@@ -112,10 +113,11 @@ void ForceAssimilation::checkpoint(double t) {
     c.parameters[i].start = std::clamp(start[i], params_[i].lower, params_[i].upper);
     c.parameters[i].scale = std::abs(params_[i].start) > 0 ? std::abs(params_[i].start) : 1.0;
     // Warm: where the last estimate determined the key (its standard deviation below a tenth
-    // of its value), the search starts within 3 standard deviations of it and stops when its steps
-    // fall below a twentieth of one (the data since add less than that); otherwise from its
-    // default trust radius to xtol_rel.
-    if (!checkpoints_.empty()) {
+    // of its value) and fitted its data within their noise, the search starts within 3
+    // standard deviations of it and stops when its steps fall below a twentieth of one (the
+    // data since add less than that); otherwise from its default trust radius to xtol_rel (an
+    // inconsistent fit may sit in a local minimum its small deviations would confine it to).
+    if (!checkpoints_.empty() && checkpoints_.back().consistent) {
       const double sd = checkpoints_.back().stds[i];
       if (std::isfinite(sd) && sd < 0.1 * std::abs(checkpoints_.back().values[i])) {
         c.parameters[i].initial_step = 3 * sd;
@@ -156,6 +158,17 @@ void ForceAssimilation::checkpoint(double t) {
   k.rms = r.rms;
   k.innovation_rms = fresh ? std::sqrt(innovation2 / fresh) : 0.0;
   k.consistent = !stated() || k.samples < 10 || r.rms <= 1.5 * s_.fit.noise;
+  if (!k.consistent) {
+    // The residuals say the noise is larger than stated (or the model misses something): the
+    // covariance takes their own scale, s^2 = RSS / (m - n), not the stated one (the Birge
+    // ratio), so that the deviations reported are not the stated noise's.
+    const double dof = std::max(1, k.samples - static_cast<int>(n));
+    const double inflation = std::sqrt(r.residuals_fit.squaredNorm() / dof) / s_.fit.noise;
+    if (inflation > 1) {
+      for (double& sd : k.stds) sd *= inflation;
+      r.covariance *= inflation * inflation;
+    }
+  }
 
   // The scene to its end with the estimate: the next samples' prediction and the targets'.
   prediction_ = run(k.values, end());
