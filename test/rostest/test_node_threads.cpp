@@ -148,9 +148,14 @@ TEST(NodeThreads, EveryThreadAtOnceThenTheNodeDestroyedWhileCommandsArrive) {
     for (int k = 0; k < 3; ++k) {
       needle_sim::PredictInsertion pr;
       pr.request.trajectory.header.frame_id = "tissue";
-      needle_sim::NeedleWaypoint w;  // 6 mm in 0.3 s from where the base is (at most 3 mm in)
+      // 6 mm in 0.3 s beyond the base's latest command (the base lags it by a few steps): a
+      // speed well inside both limits however long the previous prediction waited for a core
+      // (an aim fixed at 9 mm in was 13 mm behind the base by the third one under ASan, faster
+      // than the 40 mm/s limit set below).
+      const double commanded = 0.010 * std::min(ros::WallTime::now().toSec() - pose_t0, 3.0);
+      needle_sim::NeedleWaypoint w;
       w.time_from_start = ros::Duration(0.3);
-      w.pose.position.x = kBaseX + 0.009, w.pose.position.y = kY, w.pose.position.z = kZ;
+      w.pose.position.x = kBaseX + commanded + 0.006, w.pose.position.y = kY, w.pose.position.z = kZ;
       w.pose.orientation.w = 1;
       pr.request.trajectory.waypoints = {w};
       pr.request.duration = 0.3;
