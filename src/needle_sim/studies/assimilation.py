@@ -115,11 +115,18 @@ def dbs_twin(tool, noise, root):
 
 
 def mahalanobis2(d, cov):
+    """(d^T C^+ d over C's range, |d| outside it [m], C's rank). With fewer keys than 3 the
+    targets' covariance G Cov G^T has rank below 3: a distance off its range is not a number of
+    standard deviations, and is reported apart."""
     import numpy as np
     c = np.array([[math.inf if v is None else v for v in cov[3 * i:3 * i + 3]] for i in range(3)])
     if not np.all(np.isfinite(c)):
-        return math.inf
-    return float(np.array(d) @ np.linalg.solve(c, np.array(d)))
+        return math.inf, math.inf, 3
+    w, v = np.linalg.eigh(0.5 * (c + c.T))
+    keep = w > 1e-9 * max(w.max(), 0.0)
+    dv = v.T @ np.array(d)
+    inside = float(np.sum(dv[keep] ** 2 / w[keep])) if keep.any() else 0.0
+    return inside, float(np.linalg.norm(dv[~keep])), int(keep.sum())
 
 
 def main():
@@ -184,10 +191,16 @@ def main():
                 1e3 * float(c["rms_residual"]), "yes" if c["consistent"] == "1" else "**no**", 1e3 * err,
                 ", ".join("%.4f" % (1e3 * s) for s in sd)))
         last = [float(cps[-1]["STN_L_end_%s" % x]) for x in "xyz"]
-        d2 = mahalanobis2([p - q for p, q in zip(last, truth_end)], cov)
-        maha = ("the patient's STN end position is %.1f Mahalanobis units from the prediction (95 %% ellipsoid: 2.80)"
-                % math.sqrt(d2) if d2 >= 0 and math.isfinite(d2) else
-                "the STN's published covariance is not positive definite: no Mahalanobis distance")
+        d2, off, rank = mahalanobis2([p - q for p, q in zip(last, truth_end)], cov)
+        if not math.isfinite(d2):
+            maha = "the STN's published covariance is not finite (a key not determined)"
+        elif rank == 3:
+            maha = ("the patient's STN end position is %.1f Mahalanobis units from the prediction (95 %% ellipsoid: 2.80)"
+                    % math.sqrt(d2))
+        else:
+            maha = ("the STN's published covariance has rank %d (from %d keys): within its range the patient's STN end "
+                    "position is %.1f standard deviations from the prediction, and %.4f mm off that range, where the "
+                    "covariance says nothing" % (rank, len(hidden), math.sqrt(d2), 1e3 * off))
         dshown = " ".join(c if not c.startswith(a.out) else "DIR" + c[len(a.out):] for c in dcmd)
         dshown = dshown.replace(tool, "devel/lib/needle_sim/needle_sim").replace(paths.scene(DBS), "config/scenes/" + DBS)
         md += ("\nDBS (dbs_coarse, cannula force, noise %.1f mN), tissue stiffness and grip hidden:\n\n```bash\n%s\n```\n\n"
