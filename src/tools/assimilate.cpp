@@ -26,6 +26,7 @@ std::unique_ptr<ForceAssimilation> makeAssimilation(const AssimilateOptions& o, 
   s.fit.needle = needle;
   s.fit.noise = o.noise;
   s.every = o.every;
+  s.target_errors = o.target_error;
   if (commands) s.fit.commands = *commands;
   s.fit.parameters = parseFitKeys(o.keys, o.starts, o.bounds);
   ForceRecord data;
@@ -54,6 +55,9 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
       for (const char* c : {"x", "y", "z"}) f << ',' << n << "_end_" << c;
     for (const auto& n : target_names)
       for (const char* c : {"x", "y", "z"}) f << ',' << n << "_end_std_" << c;
+    if (o.target_error)
+      for (const auto& n : target_names)
+        for (const char* c : {"x", "y", "z"}) f << ',' << n << "_end_bound_" << c;
     f << ",evaluations,wall_s\n";
     for (const auto& k : cps) {
       f << k.t << ',' << k.samples << ',' << k.new_samples;
@@ -61,6 +65,11 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
       f << ',' << k.rms << ',' << k.innovation_rms << ',' << (k.consistent ? 1 : 0);
       for (const auto& x : k.target_end) f << ',' << x[0] << ',' << x[1] << ',' << x[2];
       for (const auto& c : k.target_cov) f << ',' << std::sqrt(c(0, 0)) << ',' << std::sqrt(c(1, 1)) << ',' << std::sqrt(c(2, 2));
+      if (o.target_error)
+        for (size_t j = 0; j < target_names.size(); ++j) {
+          const Vec3 b = j < k.target_bound.size() ? k.target_bound[j] : Vec3::Constant(NAN);
+          f << ',' << b[0] << ',' << b[1] << ',' << b[2];
+        }
       f << ',' << k.evaluations << ',' << k.wall_s << '\n';
     }
   }
@@ -91,6 +100,10 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
       for (int r = 0; r < 3; ++r)
         for (int q = 0; q < 3; ++q) cov.push_back(finiteOrNull(c(r, q)));
       targets[target_names[j]] = {{"end_position", {x[0], x[1], x[2]}}, {"end_covariance", cov}};
+      if (o.target_error && j < cps.back().target_bound.size()) {
+        const Vec3& b = cps.back().target_bound[j];
+        targets[target_names[j]]["end_discretisation_bound"] = {finiteOrNull(b[0]), finiteOrNull(b[1]), finiteOrNull(b[2])};
+      }
     }
   int inconsistent = 0;
   for (const auto& k : cps) inconsistent += k.consistent ? 0 : 1;

@@ -16,6 +16,7 @@ struct AssimilateOptions {
   std::vector<std::string> keys, starts, bounds; // --assimilate k1,k2 --start k=v --bounds k=lo:hi
   double noise = std::numeric_limits<double>::quiet_NaN();  // [N]; NaN: from the residuals
   double every = 0;                              // checkpoint spacing [s]; 0: a tenth of the data
+  bool target_error = false;                     // run --target-error: the bound joins the targets' covariance
   bool given() const { return !keys.empty(); }
 };
 

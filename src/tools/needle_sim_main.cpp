@@ -495,7 +495,10 @@ int main(int argc, char** argv) {
     return code == 0 ? 0 : kExitInput;
   }
   try {
-    if (*run) return runCommand(scene_path, out_dir, sets, quiet, rec_opts, bag_run, assimilate);
+    if (*run) {
+      assimilate.target_error = rec_opts.target_error;  // --target-error: the bound joins the targets' covariance
+      return runCommand(scene_path, out_dir, sets, quiet, rec_opts, bag_run, assimilate);
+    }
     if (*check) return checkCommand(check_opts);
     if (*keys) return keysCommand(key_sections, keys_markdown);
     if (*bench) return benchCommand(bench_opts);

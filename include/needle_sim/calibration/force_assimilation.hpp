@@ -19,7 +19,11 @@
 // and the next checkpoint's search is not confined to its deviations.
 //
 // At each checkpoint the scene is also run to its end with the estimate: the targets' final
-// positions, and their covariance from the parameters' (G Cov G^T, G by forward differences).
+// positions, and their covariance from the parameters' (G Cov G^T, G by forward differences);
+// with target_errors, plus the discretisation's: diag(b^2), b the goal-oriented bound on each
+// component of the target's displacement error at the end (each bound taken as one standard
+// deviation). Without it the covariance has the rank of the keys' (below 3 for one or two keys:
+// flat), and says nothing of the mesh.
 #include <cmath>
 #include <string>
 #include <vector>
@@ -34,6 +38,7 @@ struct AssimilationSettings {
   double every = 0;         // checkpoint spacing [s of data]; <= 0: a tenth of the data's span
   double outlier_gate = 10; // residual / noise beyond which a sample is rejected
   bool predict_targets = true;
+  bool target_errors = false;  // add the discretisation bound at the end to the targets' covariance
 };
 
 struct AssimilationCheckpoint {
@@ -48,7 +53,8 @@ struct AssimilationCheckpoint {
   int evaluations = 0;           // simulations of the fit, its Jacobian and the target prediction
   double wall_s = 0;
   std::vector<Vec3> target_end;  // per target: its position at the scene's end with the estimate
-  std::vector<Mat3> target_cov;  // ... its covariance from the parameters' [m^2]
+  std::vector<Mat3> target_cov;  // ... its covariance: the parameters' (+ the discretisation's) [m^2]
+  std::vector<Vec3> target_bound;  // with target_errors: the discretisation bound per component [m]
 };
 
 struct AssimilationSample {
@@ -80,7 +86,7 @@ class ForceAssimilation {
  private:
   void checkpoint(double t);
   bool stated() const { return !std::isnan(s_.fit.noise); }
-  SimulatedForce run(const std::vector<double>& v, double until) const;
+  SimulatedForce run(const std::vector<double>& v, double until, bool target_errors = false) const;
   double end() const;  // the time a run "to the end" stops at
 
   AssimilationSettings s_;

@@ -65,6 +65,10 @@ struct CalibrationSettings {
 struct SimulatedForce {
   std::vector<double> t, force, advance;
   std::vector<Vec3> target_end;  // the targets' positions at the last step run
+  // With target_errors: per target, the goal-oriented bound on each component of its
+  // displacement's discretisation error at the last step (TargetError::component_bound);
+  // NaN where the estimate failed. Empty otherwise.
+  std::vector<Vec3> target_end_bound;
   bool failed = false;
   std::string failure;
 };
@@ -88,9 +92,11 @@ struct CalibrationResult {
 std::vector<CalibrationParameter> resolveParameters(const CalibrationSettings& s);
 
 // One run of the scene with `sets` (later entries win) up to `until` seconds (or its end);
-// with commands, they drive the needle (from its rest pose) for `until` seconds.
+// with commands, they drive the needle (from its rest pose) for `until` seconds; with
+// target_errors, the targets' discretisation error bounds at the last step too.
 SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<std::string>& sets, int needle,
-                                   double until, const std::vector<RecordedCommand>* commands = nullptr);
+                                   double until, const std::vector<RecordedCommand>* commands = nullptr,
+                                   bool target_errors = false);
 
 // progress(evaluation, rms [N], values) after every evaluation.
 CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& data,

@@ -57,10 +57,10 @@ std::vector<double> ForceAssimilation::values() const {
   return v;
 }
 
-SimulatedForce ForceAssimilation::run(const std::vector<double>& v, double until) const {
+SimulatedForce ForceAssimilation::run(const std::vector<double>& v, double until, bool target_errors) const {
   std::vector<std::string> sets = s_.fit.sets;
   for (const auto& o : parameterSets(params_, v)) sets.push_back(o);
-  return simulateHolderForce(s_.fit.scene, sets, s_.fit.needle, until, &s_.fit.commands);
+  return simulateHolderForce(s_.fit.scene, sets, s_.fit.needle, until, &s_.fit.commands, target_errors);
 }
 
 int ForceAssimilation::advance(double t) {
@@ -171,7 +171,7 @@ void ForceAssimilation::checkpoint(double t) {
   }
 
   // The scene to its end with the estimate: the next samples' prediction and the targets'.
-  prediction_ = run(k.values, end());
+  prediction_ = run(k.values, end(), s_.target_errors && s_.predict_targets);
   ++evaluations;
   if (prediction_.failed) throw NumericalError(0, "the simulation fails at the estimate: " + prediction_.failure);
   const size_t nt = prediction_.target_end.size();
@@ -203,6 +203,13 @@ void ForceAssimilation::checkpoint(double t) {
       }
       if (determined)
         for (size_t j = 0; j < nt; ++j) k.target_cov[j] = G[j] * r.covariance * G[j].transpose();
+    }
+    if (s_.target_errors) {
+      // The discretisation's part, independent of the parameters': a failed estimate (NaN)
+      // leaves the covariance unknown (NaN), not smaller.
+      k.target_bound = prediction_.target_end_bound;
+      for (size_t j = 0; j < nt && j < k.target_bound.size(); ++j)
+        k.target_cov[j] += k.target_bound[j].cwiseProduct(k.target_bound[j]).asDiagonal();
     }
   }
   k.evaluations = evaluations;

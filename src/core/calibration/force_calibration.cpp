@@ -138,7 +138,7 @@ std::vector<CalibrationParameter> resolveParameters(const CalibrationSettings& s
 }
 
 SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<std::string>& sets, int needle,
-                                   double until, const std::vector<RecordedCommand>* commands) {
+                                   double until, const std::vector<RecordedCommand>* commands, bool target_errors) {
   SimulatedForce r;
   Scene sc = loadScene(scene, sets);
   if (needle < 0 || needle >= static_cast<int>(sc.needles.size()))
@@ -149,7 +149,9 @@ SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<s
     sc.duration = std::max(until, sc.dt);
   }
   try {
-    Simulation sim(sc);
+    Simulation::Options so;
+    so.target_errors = target_errors;
+    Simulation sim(sc, so);
     std::unique_ptr<CommandReplay> replay;
     if (replaying) replay = std::make_unique<CommandReplay>(sim, CommandLimits{}, *commands);
     const BasePose p0 = sim.needle(needle).trajectory().pose(0);
@@ -166,6 +168,9 @@ SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<s
       if (!std::isfinite(r.force.back())) throw NumericalError(k, "non-finite holder force");
     }
     for (const TargetObservation& t : o.targets) r.target_end.push_back(t.position);
+    if (target_errors)
+      for (const TargetError& e : sim.targetErrors())
+        r.target_end_bound.push_back(e.valid ? e.component_bound : Vec3::Constant(std::numeric_limits<double>::quiet_NaN()));
   } catch (const NumericalError& e) {
     r.failed = true;
     r.failure = e.what();
