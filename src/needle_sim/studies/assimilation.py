@@ -123,6 +123,38 @@ def dbs_twin(tool, noise, root):
     return hidden, judge(cps, hidden, 9.0), stn, cps, cmd, truth_end, cov, truth_rms
 
 
+def dbs_landscape(tool, noise_root, fit, hidden, jobs, points=11):
+    """The DBS record's RMS residual along the segment from the final fit to the hidden values
+    (a fraction a of the way): where a local search could not cross. Per point also the
+    largest residual and when the cannula's force peaks (the grip's release during the
+    withdrawal)."""
+    import numpy as np
+    out = os.path.join(noise_root, "dbs", "landscape")
+    os.makedirs(out, exist_ok=True)
+    rec = list(csv.DictReader(open(os.path.join(noise_root, "dbs", "force.csv"))))
+    mt = np.array([float(r["t"]) for r in rec])
+    mf = np.array([float(r["axial_force"]) for r in rec])
+    keys = list(hidden)
+
+    def point(i):
+        a = i / (points - 1)
+        v = [f + a * (hidden[k] - f) for k, f in zip(keys, fit)]
+        d = os.path.join(out, "a%02d" % i)
+        if not (REUSE and os.path.exists(os.path.join(d, "timeseries.csv"))):
+            cmd = [tool, "run", paths.scene(DBS), "--out", d, "--quiet"]
+            for k, x in zip(keys, v):
+                cmd += ["--set", "%s=%.17g" % (k, x)]
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        rows = list(csv.DictReader(open(os.path.join(d, "timeseries.csv"))))
+        tt = np.array([float(r["t"]) for r in rows])
+        ff = np.array([float(r["cannula_axial_force"]) for r in rows])
+        res = mf - np.interp(mt, tt, ff)
+        return a, v, float(np.sqrt(np.mean(res ** 2))), float(np.abs(res).max()), float(tt[np.argmax(ff)]), float(ff.max())
+
+    with concurrent.futures.ThreadPoolExecutor(jobs) as ex:
+        return list(ex.map(point, range(points)))
+
+
 def mahalanobis2(d, cov):
     """(d^T C^+ d over C's range, |d| outside it [m], C's rank). With fewer keys than 3 the
     targets' covariance G Cov G^T has rank below 3: a distance off its range is not a number of
@@ -215,6 +247,13 @@ def main():
         dshown = dshown.replace(tool, "devel/lib/needle_sim/needle_sim").replace(paths.scene(DBS), "config/scenes/" + DBS)
         md += ("\nDBS (dbs_coarse, cannula force, noise %.1f mN), tissue stiffness and grip hidden:\n\n```bash\n%s\n```\n\n"
                "%s\n\n%s\n\nAt the end %s.\n" % (1e3 * a.dbs_noise, dshown, "\n".join(dl), "\n".join(sl), maha))
+        fit = [float(cps[-1][k]) for k in hidden]
+        ll = ["| a | young | grip | RMS residual mN | largest residual mN | cannula force's peak: t [s], N |",
+              "|---|---|---|---|---|---|"]
+        for av, v, rms, worst, tpeak, fpeak in dbs_landscape(tool, a.out, fit, hidden, a.jobs):
+            ll.append("| %.1f | %.3f | %.3f | %.2f | %.1f | %.2f, %.2f |" % (av, v[0], v[1], 1e3 * rms, 1e3 * worst, tpeak, fpeak))
+        md += ("\nThe record's RMS residual along the segment from the final estimate (a = 0) to the hidden values "
+               "(a = 1), the scene run at each point (DIR/dbs/landscape):\n\n%s\n" % "\n".join(ll))
     with open(os.path.join(a.out, "table.md"), "w") as f:
         f.write(md)
     print(md)
