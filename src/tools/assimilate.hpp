@@ -15,6 +15,8 @@ struct AssimilateOptions {
   std::string data;                              // CSV as calibrate's (t, axial_force)
   std::vector<std::string> keys, starts, bounds; // --assimilate k1,k2 --start k=v --bounds k=lo:hi
   double noise = std::numeric_limits<double>::quiet_NaN();  // [N]; NaN: from the residuals
+  double tip_noise = std::numeric_limits<double>::quiet_NaN();  // [m] per coordinate, for tip_x,y,z columns
+  double target_noise = std::numeric_limits<double>::quiet_NaN();  // [m] per coordinate, for <target>_x,y,z
   double every = 0;                              // checkpoint spacing [s]; 0: a tenth of the data
   bool target_error = false;                     // run --target-error: the bound joins the targets' covariance
   bool given() const { return !keys.empty(); }
@@ -25,9 +27,11 @@ struct AssimilateOptions {
 std::unique_ptr<needle_sim::ForceAssimilation> makeAssimilation(const AssimilateOptions& o, const std::string& scene,
                                                                 const std::vector<std::string>& sets, int needle,
                                                                 const needle_sim::ForceRecord* bag_force,
-                                                                const std::vector<needle_sim::RecordedCommand>* commands);
+                                                                const std::vector<needle_sim::RecordedCommand>* commands,
+                                                                const std::vector<std::string>& target_names);
 
-// Writes DIR/assimilation.csv, DIR/innovation.csv and summary.json's "assimilation" section;
+// Writes DIR/assimilation.csv, DIR/innovation.csv (with a tip or targets measured,
+// innovation_tip.csv, innovation_targets.csv) and summary.json's "assimilation" section;
 // prints the final estimate.
 void writeAssimilation(const needle_sim::ForceAssimilation& a, const AssimilateOptions& o, const std::string& out_dir,
                        const std::vector<std::string>& target_names);

@@ -105,6 +105,10 @@ int calibrateCommand(const CalibrateOptions& o) {
     s.commands = std::move(session.commands);
   } else {
     data = readForceCsv(o.data);
+    // calibrate fits the force and reports it (fit.csv, fit.png); a tracked tip is
+    // assimilated by `run --assimilate` with its noise.
+    data.tip.clear();
+    if (!data.hasForce()) throw InputError(o.data, "axial_force", "calibrate fits the holder force: the record has no axial_force (a tracked tip is for run --assimilate with --tip-noise)");
   }
   std::filesystem::create_directories(o.out);
 

@@ -102,7 +102,7 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
     if (assimilate.given()) {
       if (scene.needles.empty()) throw InputError(scene_path, "--assimilate", "the scene has no needle whose force could be measured");
       assim = makeAssimilation(assimilate, scene_path, sets, bag_needle, &session.force,
-                               bag_run.given() ? &session.commands : nullptr);
+                               bag_run.given() ? &session.commands : nullptr, observableNames(*sim).targets);
     }
   } catch (const InputError& e) {
     std::cerr << "needle_sim: invalid input: " << e.what() << '\n';
@@ -355,8 +355,16 @@ int main(int argc, char** argv) {
                   "estimate these scene keys (comma-separated) online from the measured holder force (--data, or "
                   "--bag with --wrench-topic): DIR/assimilation.csv, DIR/innovation.csv, summary.json assimilation")
       ->delimiter(',');
-  run->add_option("--data", assimilate.data, "... the measurement: a CSV with t [s] and axial_force [N] (calibrate's)");
-  run->add_option("--noise", assimilate.noise, "... its noise, a standard deviation [N] (default: from the residuals)")
+  run->add_option("--data", assimilate.data,
+                  "... the measurement: a CSV with t [s] and axial_force [N] (calibrate's) and/or a tracked tip tip_x, tip_y, tip_z [m] "
+                  "and/or a target's measured position <target>_x, _y, _z [m]");
+  run->add_option("--noise", assimilate.noise, "... the force's noise, a standard deviation [N] (default: from the residuals)")
+      ->check(CLI::PositiveNumber);
+  run->add_option("--tip-noise", assimilate.tip_noise,
+                  "... the tip's noise, a standard deviation per coordinate [m] (needed with the force's to weigh both)")
+      ->check(CLI::PositiveNumber);
+  run->add_option("--target-noise", assimilate.target_noise,
+                  "... a measured target's noise, a standard deviation per coordinate [m] (columns <target>_x, _y, _z)")
       ->check(CLI::PositiveNumber);
   run->add_option("--assimilate-every", assimilate.every, "... a checkpoint every S seconds of data (default: a tenth)")
       ->check(CLI::PositiveNumber);

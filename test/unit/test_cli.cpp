@@ -711,6 +711,10 @@ TEST(Cli, RunAssimilateRejectsBadInputsAndWritesItsOutputs) {
       {"--assimilate interaction.no_such_key --data '" + good + "'", "no_such_key"},
       {"--assimilate interaction.cutting_force --start interaction.friction=1 --data '" + good + "'", "not among the keys"},
       {"--assimilate interaction.cutting_force --noise -1 --data '" + good + "'", "--noise"},
+      {"--assimilate interaction.cutting_force --noise 0.001 --data '" +
+           file("both.csv", "t,axial_force,tip_x,tip_y,tip_z\n0.1,0,0,0.01,0.01\n0.2,0,0.001,0.01,0.01\n0.3,0,0.002,0.01,0.01\n") + "'",
+       "--tip-noise"},
+      {"--assimilate interaction.cutting_force --data '" + file("tip2.csv", "t,tip_x,tip_y\n0,0,0\n1,0,0\n") + "'", "tip_z"},
   };
   for (const auto& c : cases) {
     SCOPED_TRACE(c.args);

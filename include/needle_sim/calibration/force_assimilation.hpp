@@ -1,6 +1,9 @@
 #pragma once
-// Online estimation of uncertain scene parameters from a measured holder force, as it arrives
-// (doc/calibration.md#assimilation, `needle_sim run SCENE --data FILE --assimilate KEYS`).
+// Online estimation of uncertain scene parameters from a measured holder force and/or a tracked
+// tip position, as they arrive (doc/calibration.md#assimilation, `needle_sim run SCENE --data
+// FILE --assimilate KEYS`). The channels are weighed by their stated noises
+// (MeasurementWeights, force_calibration.hpp): residuals, RMS and innovations below are in the
+// reference channel's units (N with a force; m for a tip alone).
 //
 // A causal, expanding-window least-squares estimator on calibrate's machinery
 // (force_calibration.hpp): at every checkpoint t_k (a fixed spacing of the data's time) the
@@ -18,8 +21,14 @@
 // covariance then takes the residuals' own scale (RSS / (m - n)) instead of the stated noise's,
 // and the next checkpoint's search is not confined to its deviations.
 //
+// A measured target (its position in the record, e.g. from an image) has an offset from the
+// model's, estimated with the keys (the mean of measured - simulated: force_calibration.hpp).
+//
 // At each checkpoint the scene is also run to its end with the estimate: the targets' final
-// positions, and their covariance from the parameters' (G Cov G^T, G by forward differences);
+// positions (plus a measured target's offset), and their covariance from the parameters' (G
+// Cov G^T, G by forward differences; for a measured target, of its end less its mean at the
+// sampled times, which the offset pins to the measurements) plus the offset's sampling
+// variance (s^2 / samples per axis);
 // with target_errors, plus the discretisation's: diag(b^2), b the goal-oriented bound on each
 // component of the target's displacement error at the end (each bound taken as one standard
 // deviation). Without it the covariance has the rank of the keys' (below 3 for one or two keys:
@@ -47,26 +56,40 @@ struct AssimilationCheckpoint {
   int new_samples = 0;           // since the previous checkpoint
   std::vector<double> values;    // per key
   std::vector<double> stds;      // +inf: the data do not determine the key yet; inconsistent: inflated
-  double rms = 0;                // RMS residual at the fit [N]
-  double innovation_rms = 0;     // the new samples against the previous estimate's prediction [N]
+  double rms = 0;                // RMS residual at the fit
+  double innovation_rms = 0;     // the new samples against the previous estimate's prediction
   bool consistent = true;        // rms <= 1.5 noise (or too few samples to tell)
   int evaluations = 0;           // simulations of the fit, its Jacobian and the target prediction
   double wall_s = 0;
   std::vector<Vec3> target_end;  // per target: its position at the scene's end with the estimate
   std::vector<Mat3> target_cov;  // ... its covariance: the parameters' (+ the discretisation's) [m^2]
   std::vector<Vec3> target_bound;  // with target_errors: the discretisation bound per component [m]
+  // Per target: its offset (measured - modelled) estimated from its measured positions, in
+  // target_end and (with its sampling variance) in target_cov; NaN: not measured yet.
+  std::vector<Vec3> target_offset;
 };
 
 struct AssimilationSample {
-  double t = 0, measured = 0;
+  double t = 0, measured = 0;  // the force; NaN: the row has no force sample
   double predicted = 0;  // by the estimate in force before the sample arrived (causal)
   bool arrived = false;  // reached a checkpoint: a sample after the run's end never does
   bool rejected = false;
+  Vec3 tip_measured = Vec3::Constant(NAN);  // NaN: the row has no tip sample
+  Vec3 tip_predicted = Vec3::Zero();
+  bool tip_rejected = false;
+  // Per target with measurement columns (else empty): measured (NaN: no sample), predicted (the
+  // model's with the offset estimated before the sample arrived), rejected.
+  std::vector<Vec3> target_measured, target_predicted;
+  std::vector<char> target_rejected;
+  bool hasForce() const { return std::isfinite(measured); }
+  bool hasTip() const { return tip_measured.allFinite(); }
+  bool hasTarget(size_t j) const { return j < target_measured.size() && target_measured[j].allFinite(); }
 };
 
 class ForceAssimilation {
  public:
-  // `data` as read (readForceCsv with rejects); the noise NaN (not stated) or > 0.
+  // `data` as read (readForceCsv with rejects); the noises NaN (not stated) or > 0, both stated
+  // for a record of the force and the tip.
   ForceAssimilation(AssimilationSettings s, ForceRecord data);
 
   // The measurement has arrived up to time t: a checkpoint (a refit) at every checkpoint time
@@ -82,21 +105,24 @@ class ForceAssimilation {
   std::vector<double> values() const;  // the latest estimate (the nominal values before the first)
   long outliers() const { return outliers_; }
   double every() const { return every_; }
+  const MeasurementWeights& weights() const { return w_; }
 
  private:
   void checkpoint(double t);
-  bool stated() const { return !std::isnan(s_.fit.noise); }
+  bool stated() const { return !std::isnan(w_.noise); }
   SimulatedForce run(const std::vector<double>& v, double until, bool target_errors = false) const;
   double end() const;  // the time a run "to the end" stops at
 
   AssimilationSettings s_;
   ForceRecord data_;
+  MeasurementWeights w_;
   std::vector<CalibrationParameter> params_;
   std::vector<AssimilationSample> samples_;
   std::vector<AssimilationCheckpoint> checkpoints_;
   double every_ = 0, next_ = 0, fitted_until_ = -1;
   long outliers_ = 0;
   SimulatedForce prediction_;  // the latest estimate's run over the whole scene
+  std::vector<Vec3> offsets_;  // the measured targets' latest offsets (NaN: none yet)
 };
 
 }  // namespace needle_sim

@@ -54,6 +54,17 @@ struct CalibrationSettings {
   // The measurement's noise (standard deviation [N]): the covariance's s^2 when given; NaN:
   // s^2 = RSS / (m - n), the residuals' own estimate.
   double noise = std::numeric_limits<double>::quiet_NaN();
+  // A tracked tip's noise (standard deviation per coordinate [m]). A record with both the
+  // force and the tip needs both noises: the tip's residuals are weighted by noise / tip_noise
+  // (in newtons, the force's units); a record of the tip alone is fitted in metres, with
+  // tip_noise as its s (NaN: the residuals' own).
+  double tip_noise = std::numeric_limits<double>::quiet_NaN();
+  // A measured target position's noise (standard deviation per coordinate [m]), weighed as the
+  // tip's. A measured target has an unknown offset from the model's (the brain shift
+  // mispredicted, a registration error): it is estimated with the keys, in closed form (the
+  // mean of measured - simulated, profiled out of the cost), so the target's samples inform the
+  // keys through its motion only.
+  double target_noise = std::numeric_limits<double>::quiet_NaN();
   // A recorded session's commands (a bag): they drive the needle through the command guard
   // instead of the scene's motion. Empty: the scene's motion.
   std::vector<RecordedCommand> commands;
@@ -64,6 +75,8 @@ struct CalibrationSettings {
 // axis, at every step.
 struct SimulatedForce {
   std::vector<double> t, force, advance;
+  std::vector<Vec3> tip;         // the needle's tip (observables' NeedleObservation::tip)
+  std::vector<std::vector<Vec3>> targets;  // per target, per step: its position
   std::vector<Vec3> target_end;  // the targets' positions at the last step run
   // With target_errors: per target, the goal-oriented bound on each component of its
   // displacement's discretisation error at the last step (TargetError::component_bound);
@@ -78,14 +91,33 @@ struct CalibrationResult {
   std::vector<double> values, std_errors;        // std error +inf: not identifiable
   Eigen::MatrixXd covariance;                    // s^2 (J^T J)^+ in the keys' units (see std_errors)
   std::vector<bool> identifiable;
-  double rms_start = 0, rms = 0;  // RMS residual [N] at the start and the fit
+  // Residuals are in the reference channel's units (MeasurementWeights): N with a force.
+  double rms_start = 0, rms = 0;  // RMS residual at the start and the fit
   VecX residuals_fit;             // fitted - measured at the samples inside the simulated time
-  int residuals = 0;              // measured samples inside the simulated time
+  int residuals = 0;              // residuals (a force sample gives one, a tip sample three)
+  // Per residual: its row in the data and its channel (0: force; 1, 2, 3: the tip's x, y, z;
+  // 4 + 3 j + c: target j's coordinate c).
+  std::vector<int> residual_row, residual_channel;
+  // Per target: its estimated offset (measured - simulated, at the fit) [m]; NaN: not measured.
+  std::vector<Vec3> target_offsets;
+  int offset_parameters = 0;  // 3 per measured target: the residuals' degrees of freedom less
   int evaluations = 0, failed_evaluations = 0, jacobian_evaluations = 0;
   double wall_s = 0;
   std::string stop_reason;
   SimulatedForce start_run, fitted_run;
 };
+
+// How a record's channels are weighed into one least-squares cost (force_calibration.cpp):
+// the reference channel is the force if the record has one, else the tip; its noise is the
+// covariance's s (NaN: the residuals' own); the tip's residuals are multiplied by tip_weight.
+struct MeasurementWeights {
+  double noise = std::numeric_limits<double>::quiet_NaN();
+  double tip_weight = 1, target_weight = 1;
+  const char* units = "N";
+};
+// The reference channel: the force, else the tip, else the targets. InputError for a record
+// of several channels without all their noises, or a noise that is not a positive number.
+MeasurementWeights measurementWeights(const CalibrationSettings& s, const ForceRecord& data);
 
 // Starts and bounds of the parameters; InputError for a key unknown to the scene, a key that
 // is not a real number (e.g. an integer or a string), a start outside its bounds.

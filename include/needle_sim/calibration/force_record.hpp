@@ -4,14 +4,27 @@
 // calibrate its parameters from. CSV with a header naming the columns `t` [s] and
 // `axial_force` [N]: the needle's force on its holder along the needle, the sensor's reading
 // as the simulation reports it (observables.hpp): negative when the tissue resists the
-// insertion. Other columns are ignored.
+// insertion. Optionally (or instead of the force) a tracker's tip position, `tip_x`, `tip_y`,
+// `tip_z` [m, the scene's frame]: the needle's tip as the run's `<needle>_tip_*` columns give
+// it. And, for a target the caller names (e.g. from an intraoperative image), its measured
+// position `<target>_x`, `_y`, `_z` [m, the scene's frame: the run's target columns]. Sensors
+// at different rates leave a blank cell where they have no sample. Other columns are ignored.
 #include <string>
 #include <vector>
+
+#include "needle_sim/core/types.hpp"
 
 namespace needle_sim {
 
 struct ForceRecord {
-  std::vector<double> t, force;
+  std::vector<double> t, force;  // force NaN: no force sample in that row
+  std::vector<Vec3> tip;         // empty: no tip channel; else per row, NaN: no tip sample
+  // Per target named to the reader: empty (no columns), else per row (NaN: no sample).
+  std::vector<std::vector<Vec3>> targets;
+  bool hasForce() const;         // a finite force in some row
+  bool hasTip() const;
+  bool hasTarget(size_t j) const;
+  bool hasTargets() const;
 };
 
 // Rows a measurement stream may carry and an estimator must survive (assimilation): a
@@ -21,11 +34,13 @@ struct ForceCsvRejects {
   long nonfinite = 0, stale = 0;
 };
 
-// Throws InputError(file, column, problem) for a file that cannot be read, a missing column,
-// a value that is not a number, fewer than 2 rows; and, unless `rejects` is given, for a
-// non-finite value or times that do not increase strictly. With `rejects`, such rows are
-// skipped and counted there instead.
-ForceRecord readForceCsv(const std::string& path, ForceCsvRejects* rejects = nullptr);
+// Throws InputError(file, column, problem) for a file that cannot be read, no `t` column or
+// no channel (axial_force; tip_x, tip_y, tip_z; a target's three), a value that is not a number,
+// a row with no sample, fewer than 2 rows; and, unless `rejects` is given, for a non-finite
+// value or times that do not increase strictly. With `rejects`, such values (a row's channel)
+// and rows are skipped and counted there instead.
+ForceRecord readForceCsv(const std::string& path, ForceCsvRejects* rejects = nullptr,
+                         const std::vector<std::string>& target_names = {});
 
 // Linear interpolation of (t, y) at time x, clamped at the ends; t strictly increasing.
 double interpolate(const std::vector<double>& t, const std::vector<double>& y, double x);

@@ -1,6 +1,7 @@
 #include "needle_sim/calibration/force_assimilation.hpp"
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -23,18 +24,57 @@ double robustScale(const VecX& r) {
   std::nth_element(a.begin(), a.begin() + a.size() / 2, a.end());
   return 1.4826 * a[a.size() / 2];
 }
+
+// A coordinate series of per-step points.
+std::vector<double> coordinate(const std::vector<Vec3>& p, int c) {
+  std::vector<double> out;
+  out.reserve(p.size());
+  for (const Vec3& x : p) out.push_back(x[c]);
+  return out;
+}
+
+using Series3 = std::array<std::vector<double>, 3>;
+Series3 series(const std::vector<Vec3>& p) { return {coordinate(p, 0), coordinate(p, 1), coordinate(p, 2)}; }
+
+Vec3 interpolate3(const std::vector<double>& t, const Series3& c, double x) {
+  return Vec3(interpolate(t, c[0], x), interpolate(t, c[1], x), interpolate(t, c[2], x));
+}
+
+// A run's target j, mean over the times the window has its samples (NaN: none).
+Vec3 sampledMean(const SimulatedForce& f, const ForceRecord& w, size_t j) {
+  if (j >= f.targets.size() || j >= w.targets.size() || w.targets[j].empty()) return Vec3::Constant(NAN);
+  const Series3 c = series(f.targets[j]);
+  Vec3 sum = Vec3::Zero();
+  int n = 0;
+  for (size_t i = 0; i < w.t.size(); ++i)
+    if (w.targets[j][i].allFinite()) {
+      sum += interpolate3(f.t, c, w.t[i]);
+      ++n;
+    }
+  return n ? Vec3(sum / n) : Vec3::Constant(NAN);
+}
 }  // namespace
 
 ForceAssimilation::ForceAssimilation(AssimilationSettings s, ForceRecord data) : s_(std::move(s)), data_(std::move(data)) {
-  if (!std::isnan(s_.fit.noise) && !(s_.fit.noise > 0 && std::isfinite(s_.fit.noise)))
-    throw InputError("", "--noise", "the force measurement's noise (standard deviation, N) must be a positive number");
+  w_ = measurementWeights(s_.fit, data_);
   if (!(s_.outlier_gate > 1)) throw InputError("", "outlier_gate", "must exceed 1 noise standard deviation");
   if (data_.t.size() < 2) throw InputError("", "--data", "at least 2 measured samples are needed");
   params_ = resolveParameters(s_.fit);
   every_ = s_.every > 0 ? s_.every : (data_.t.back() - data_.t.front()) / 10;
   if (!(every_ > 0)) throw InputError("", "--assimilate-every", "the data span no time");
   next_ = data_.t.front() + every_;
-  for (size_t i = 0; i < data_.t.size(); ++i) samples_.push_back({data_.t[i], data_.force[i], 0.0, false, false});
+  for (size_t i = 0; i < data_.t.size(); ++i) {
+    AssimilationSample x;
+    x.t = data_.t[i];
+    x.measured = data_.force[i];
+    if (!data_.tip.empty()) x.tip_measured = data_.tip[i];
+    for (const auto& q : data_.targets) {
+      x.target_measured.push_back(q.empty() ? Vec3::Constant(NAN) : q[i]);
+      x.target_predicted.push_back(Vec3::Zero());
+      x.target_rejected.push_back(0);
+    }
+    samples_.push_back(x);
+  }
   std::vector<double> v;
   for (const auto& p : params_) v.push_back(p.start);
   prediction_ = run(v, end());
@@ -85,26 +125,62 @@ void ForceAssimilation::checkpoint(double t) {
   const auto t0 = std::chrono::steady_clock::now();
   const size_t n = params_.size();
   // The samples that arrived since the last checkpoint, predicted before they are used.
-  int fresh = 0;
+  int fresh = 0, fresh_values = 0;
   double innovation2 = 0;
+  const Series3 tip = series(prediction_.tip);
+  std::vector<Series3> target;
+  for (const auto& q : prediction_.targets) target.push_back(series(q));
   for (auto& x : samples_)
     if (x.t > fitted_until_ + 1e-12 && x.t <= t + 1e-12) {
-      x.predicted = interpolate(prediction_.t, prediction_.force, x.t);
       x.arrived = true;
-      innovation2 += (x.measured - x.predicted) * (x.measured - x.predicted);
       ++fresh;
+      if (x.hasForce()) {
+        x.predicted = interpolate(prediction_.t, prediction_.force, x.t);
+        innovation2 += (x.measured - x.predicted) * (x.measured - x.predicted);
+        ++fresh_values;
+      }
+      if (x.hasTip()) {
+        x.tip_predicted = interpolate3(prediction_.t, tip, x.t);
+        innovation2 += w_.tip_weight * w_.tip_weight * (x.tip_measured - x.tip_predicted).squaredNorm();
+        fresh_values += 3;
+      }
+      for (size_t j = 0; j < x.target_measured.size(); ++j)
+        if (x.hasTarget(j) && j < target.size()) {
+          // The model's, with the last estimate of the offset (none before the first).
+          const Vec3 offset = j < offsets_.size() && offsets_[j].allFinite() ? offsets_[j] : Vec3::Zero();
+          x.target_predicted[j] = interpolate3(prediction_.t, target[j], x.t) + offset;
+          innovation2 += w_.target_weight * w_.target_weight * (x.target_measured[j] - x.target_predicted[j]).squaredNorm();
+          fresh_values += 3;
+        }
     }
+  // The window: the samples up to t, less the rejected channels; rows[i]: its sample.
+  std::vector<size_t> rows;
+  size_t values_in_window = 0;
   auto window = [&] {
     ForceRecord w;
-    for (const auto& x : samples_)
-      if (x.t <= t + 1e-12 && !x.rejected) {
-        w.t.push_back(x.t);
-        w.force.push_back(x.measured);
-      }
+    rows.clear();
+    values_in_window = 0;
+    const bool tip = !data_.tip.empty();
+    w.targets.resize(data_.targets.size());
+    for (size_t i = 0; i < samples_.size(); ++i) {
+      const auto& x = samples_[i];
+      const bool f = x.hasForce() && !x.rejected, p = x.hasTip() && !x.tip_rejected;
+      int targets = 0;
+      for (size_t j = 0; j < x.target_measured.size(); ++j) targets += x.hasTarget(j) && !x.target_rejected[j];
+      if (x.t > t + 1e-12 || !(f || p || targets)) continue;
+      w.t.push_back(x.t);
+      w.force.push_back(f ? x.measured : NAN);
+      if (tip) w.tip.push_back(p ? x.tip_measured : Vec3::Constant(NAN));
+      for (size_t j = 0; j < data_.targets.size(); ++j)
+        if (!data_.targets[j].empty())
+          w.targets[j].push_back(x.hasTarget(j) && !x.target_rejected[j] ? x.target_measured[j] : Vec3::Constant(NAN));
+      rows.push_back(i);
+      values_in_window += (f ? 1 : 0) + (p ? 3 : 0) + 3 * static_cast<size_t>(targets);
+    }
     return w;
   };
   ForceRecord w = window();
-  if (w.t.size() < n + 2) return;  // not enough to fit yet: the samples wait for the next one
+  if (values_in_window < n + 2) return;  // not enough to fit yet: the samples wait for the next one
 
   CalibrationSettings c = s_.fit;
   c.parameters = params_;
@@ -132,19 +208,25 @@ void ForceAssimilation::checkpoint(double t) {
   // The gate in the larger of the stated noise and the residuals' robust scale: a noise stated
   // too small must not reject the measurement wholesale (the consistency flag says so instead).
   const double scale = robustScale(r.residuals_fit);
-  const double gate = s_.outlier_gate * (stated() ? std::max(s_.fit.noise, scale) : scale);
+  const double gate = s_.outlier_gate * (stated() ? std::max(w_.noise, scale) : scale);
   bool rejected = false;
   for (Eigen::Index j = 0; j < r.residuals_fit.size(); ++j)
-    if (std::abs(r.residuals_fit[j]) > gate)
-      for (auto& x : samples_)
-        if (x.t == w.t[static_cast<size_t>(j)] && !x.rejected) {
-          x.rejected = true;
-          ++outliers_;
-          rejected = true;
-        }
+    if (std::abs(r.residuals_fit[j]) > gate) {
+      AssimilationSample& x = samples_[rows[static_cast<size_t>(r.residual_row[static_cast<size_t>(j)])]];
+      const int channel = r.residual_channel[static_cast<size_t>(j)];
+      const size_t target = channel >= 4 ? static_cast<size_t>((channel - 4) / 3) : 0;
+      const bool already = channel == 0 ? x.rejected : channel <= 3 ? x.tip_rejected : x.target_rejected[target] != 0;
+      if (!already) {  // a point's sample once, whichever of its coordinates is off
+        if (channel == 0) x.rejected = true;
+        else if (channel <= 3) x.tip_rejected = true;
+        else x.target_rejected[target] = 1;
+        ++outliers_;
+        rejected = true;
+      }
+    }
   if (rejected) {
     w = window();
-    if (w.t.size() < n + 2) return;
+    if (values_in_window < n + 2) return;
     r = calibrate(c, w);
     evaluations += r.evaluations + r.jacobian_evaluations + 1;
   }
@@ -156,26 +238,39 @@ void ForceAssimilation::checkpoint(double t) {
   k.values = r.values;
   k.stds = r.std_errors;
   k.rms = r.rms;
-  k.innovation_rms = fresh ? std::sqrt(innovation2 / fresh) : 0.0;
-  k.consistent = !stated() || k.samples < 10 || r.rms <= 1.5 * s_.fit.noise;
+  k.innovation_rms = fresh_values ? std::sqrt(innovation2 / fresh_values) : 0.0;
+  k.consistent = !stated() || k.samples < 10 || r.rms <= 1.5 * w_.noise;
+  // The residuals' own scale, s^2 = RSS / (m - n - offsets).
+  const double own = std::sqrt(r.residuals_fit.squaredNorm() / std::max(1, r.residuals - static_cast<int>(n) - r.offset_parameters));
+  double s_eff = stated() ? w_.noise : own;  // the noise the covariance is scaled by
   if (!k.consistent) {
     // The residuals say the noise is larger than stated (or the model misses something): the
-    // covariance takes their own scale, s^2 = RSS / (m - n), not the stated one (the Birge
-    // ratio), so that the deviations reported are not the stated noise's.
-    const double dof = std::max(1, k.samples - static_cast<int>(n));
-    const double inflation = std::sqrt(r.residuals_fit.squaredNorm() / dof) / s_.fit.noise;
+    // covariance takes their own scale, not the stated one (the Birge ratio), so that the
+    // deviations reported are not the stated noise's.
+    const double inflation = own / w_.noise;
     if (inflation > 1) {
       for (double& sd : k.stds) sd *= inflation;
       r.covariance *= inflation * inflation;
+      s_eff = own;
     }
   }
+  k.target_offset = r.target_offsets;
+  offsets_ = r.target_offsets;
 
   // The scene to its end with the estimate: the next samples' prediction and the targets'.
   prediction_ = run(k.values, end(), s_.target_errors && s_.predict_targets);
   ++evaluations;
   if (prediction_.failed) throw NumericalError(0, "the simulation fails at the estimate: " + prediction_.failure);
   const size_t nt = prediction_.target_end.size();
+  // A measured target: the model's end less its mean at the sampled times (what the offset
+  // pins to the measurements); else its end.
+  const auto anchored = [&](const SimulatedForce& f, size_t j) {
+    const bool measured = j < k.target_offset.size() && k.target_offset[j].allFinite();
+    return measured ? Vec3(f.target_end[j] - sampledMean(f, w, j)) : f.target_end[j];
+  };
   k.target_end = prediction_.target_end;
+  for (size_t j = 0; j < nt && j < k.target_offset.size(); ++j)
+    if (k.target_offset[j].allFinite()) k.target_end[j] += k.target_offset[j];
   k.target_cov.assign(nt, Mat3::Zero());
   if (s_.predict_targets && nt > 0) {
     // G = d target_end / d key by forward differences (1 % of the value's scale; away from a
@@ -199,11 +294,19 @@ void ForceAssimilation::checkpoint(double t) {
           determined = false;
           break;
         }
-        for (size_t j = 0; j < nt; ++j) G[j].col(static_cast<Eigen::Index>(i)) = (f.target_end[j] - k.target_end[j]) / h;
+        for (size_t j = 0; j < nt; ++j) G[j].col(static_cast<Eigen::Index>(i)) = (anchored(f, j) - anchored(prediction_, j)) / h;
       }
       if (determined)
         for (size_t j = 0; j < nt; ++j) k.target_cov[j] = G[j] * r.covariance * G[j].transpose();
     }
+    // A measured target's offset: the mean of its samples' noise, s^2 / samples per axis.
+    for (size_t j = 0; j < nt && j < k.target_offset.size(); ++j)
+      if (k.target_offset[j].allFinite()) {
+        int samples = 0;
+        for (const Vec3& q : w.targets[j]) samples += q.allFinite() ? 1 : 0;
+        const double sd = s_eff / w_.target_weight;
+        k.target_cov[j] += Mat3::Identity() * (sd * sd / std::max(1, samples));
+      }
     if (s_.target_errors) {
       // The discretisation's part, independent of the parameters': a failed estimate (NaN)
       // leaves the covariance unknown (NaN), not smaller.

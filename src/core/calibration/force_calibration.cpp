@@ -137,6 +137,41 @@ std::vector<CalibrationParameter> resolveParameters(const CalibrationSettings& s
   return out;
 }
 
+MeasurementWeights measurementWeights(const CalibrationSettings& s, const ForceRecord& data) {
+  const auto check = [](double v, const char* option, const char* what) {
+    if (!std::isnan(v) && !(v > 0 && std::isfinite(v)))
+      throw InputError("", option, std::string("the ") + what + " must be a positive number");
+  };
+  check(s.noise, "--noise", "force measurement's noise (standard deviation, N)");
+  check(s.tip_noise, "--tip-noise", "tip measurement's noise (standard deviation per coordinate, m)");
+  check(s.target_noise, "--target-noise", "target measurement's noise (standard deviation per coordinate, m)");
+  MeasurementWeights w;
+  const bool force = data.hasForce(), tip = data.hasTip(), target = data.hasTargets();
+  if (force + tip + target > 1) {
+    // Several channels: each weighed by the reference channel's noise over its own.
+    const auto need = [](double v, const char* option) {
+      if (std::isnan(v))
+        throw InputError("", option, "a record of several channels (force, tip, target) needs each one's noise to weigh them: "
+                                     "--noise [N], --tip-noise [m], --target-noise [m]");
+    };
+    if (force) need(s.noise, "--noise");
+    if (tip) need(s.tip_noise, "--tip-noise");
+    if (target) need(s.target_noise, "--target-noise");
+  }
+  if (force) {
+    w.noise = s.noise;
+  } else if (tip) {
+    w.noise = s.tip_noise;
+    w.units = "m";
+  } else {
+    w.noise = s.target_noise;
+    w.units = "m";
+  }
+  if (tip && !std::isnan(w.noise)) w.tip_weight = w.noise / s.tip_noise;
+  if (target && !std::isnan(w.noise)) w.target_weight = w.noise / s.target_noise;
+  return w;
+}
+
 SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<std::string>& sets, int needle,
                                    double until, const std::vector<RecordedCommand>* commands, bool target_errors) {
   SimulatedForce r;
@@ -164,6 +199,9 @@ SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<s
       const BasePose b = sim.needle(needle).trajectory().pose(sim.time());
       r.t.push_back(o.time);
       r.force.push_back(o.needles[needle].axial_force);
+      r.tip.push_back(o.needles[needle].tip);
+      r.targets.resize(o.targets.size());
+      for (size_t j = 0; j < o.targets.size(); ++j) r.targets[j].push_back(o.targets[j].position);
       r.advance.push_back((b.position - p0.position).dot(p0.direction));
       if (!std::isfinite(r.force.back())) throw NumericalError(k, "non-finite holder force");
     }
@@ -183,6 +221,7 @@ namespace {
 struct Problem {
   const CalibrationSettings* s;
   const ForceRecord* data;
+  MeasurementWeights w;
   std::vector<CalibrationParameter> p;
   std::vector<double> scale;
   double until = 0, penalty = 0;
@@ -208,11 +247,57 @@ struct Problem {
       return f;
     }
   }
-  // Residuals at the measured samples inside the simulated time.
-  VecX residuals(const SimulatedForce& f) const {
+  // Residuals at the measured samples inside the simulated time: the force's, the tip's
+  // (three, weighted); with rows and channels, which sample each is.
+  // A measured target's residuals are (simulated + offset) - measured, the offset the mean of
+  // measured - simulated over its samples (the least-squares offset: profiled out).
+  VecX residuals(const SimulatedForce& f, std::vector<int>* rows = nullptr, std::vector<int>* channels = nullptr,
+                 std::vector<Vec3>* offsets = nullptr) const {
     std::vector<double> r;
-    for (size_t i = 0; i < data->t.size(); ++i)
-      if (data->t[i] <= until + 1e-12) r.push_back(interpolate(f.t, f.force, data->t[i]) - data->force[i]);
+    const bool tip = !data->tip.empty();
+    std::vector<double> coordinate[3];
+    if (tip)
+      for (int k = 0; k < 3; ++k)
+        for (const Vec3& x : f.tip) coordinate[k].push_back(x[k]);
+    // Per measured target: the simulation at its samples, and its offset.
+    const size_t nt = data->targets.size();
+    std::vector<std::vector<Vec3>> at(nt);
+    std::vector<Vec3> offset(nt, Vec3::Constant(NAN));
+    for (size_t j = 0; j < nt; ++j) {
+      if (data->targets[j].empty() || j >= f.targets.size()) continue;
+      std::vector<double> c[3];
+      for (int k = 0; k < 3; ++k)
+        for (const Vec3& x : f.targets[j]) c[k].push_back(x[k]);
+      Vec3 sum = Vec3::Zero();
+      int count = 0;
+      at[j].assign(data->t.size(), Vec3::Constant(NAN));
+      for (size_t i = 0; i < data->t.size(); ++i)
+        if (data->t[i] <= until + 1e-12 && data->targets[j][i].allFinite()) {
+          for (int k = 0; k < 3; ++k) at[j][i][k] = interpolate(f.t, c[k], data->t[i]);
+          sum += data->targets[j][i] - at[j][i];
+          ++count;
+        }
+      if (count) offset[j] = sum / count;
+    }
+    if (offsets) *offsets = offset;
+    for (size_t i = 0; i < data->t.size(); ++i) {
+      if (data->t[i] > until + 1e-12) continue;
+      if (std::isfinite(data->force[i])) {
+        r.push_back(interpolate(f.t, f.force, data->t[i]) - data->force[i]);
+        if (rows) rows->push_back(static_cast<int>(i)), channels->push_back(0);
+      }
+      if (tip && data->tip[i].allFinite())
+        for (int k = 0; k < 3; ++k) {
+          r.push_back(w.tip_weight * (interpolate(f.t, coordinate[k], data->t[i]) - data->tip[i][k]));
+          if (rows) rows->push_back(static_cast<int>(i)), channels->push_back(1 + k);
+        }
+      for (size_t j = 0; j < nt; ++j)
+        if (!at[j].empty() && at[j][i].allFinite())
+          for (int k = 0; k < 3; ++k) {
+            r.push_back(w.target_weight * (at[j][i][k] + offset[j][k] - data->targets[j][i][k]));
+            if (rows) rows->push_back(static_cast<int>(i)), channels->push_back(4 + 3 * static_cast<int>(j) + k);
+          }
+    }
     return Eigen::Map<const VecX>(r.data(), static_cast<Eigen::Index>(r.size()));
   }
 };
@@ -260,6 +345,7 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
   pr.s = &s;
   pr.data = &data;
   pr.progress = &progress;
+  pr.w = measurementWeights(s, data);
   pr.p = resolveParameters(s);
   r.parameters = pr.p;
   const Scene sc = loadScene(s.scene, s.sets);
@@ -282,12 +368,21 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
   const VecX r0 = pr.residuals(r.start_run);
   r.residuals = pr.samples = static_cast<int>(r0.size());
   if (r.residuals < static_cast<int>(n) + 1)
-    throw InputError("", "--data", std::to_string(r.residuals) + " measured samples fall inside the scene's " +
+    throw InputError("", "--data", std::to_string(r.residuals) + " measured values fall inside the scene's " +
                                        std::to_string(sc.duration) + " s: at least " + std::to_string(n + 1) +
                                        " are needed for " + std::to_string(n) + " parameters");
   r.rms_start = std::sqrt(r0.squaredNorm() / r.residuals);
-  // A failed evaluation costs more than any force the record could be off by.
-  pr.penalty = 100 * std::max(r0.squaredNorm(), Eigen::Map<const VecX>(data.force.data(), data.force.size()).squaredNorm());
+  // A failed evaluation costs more than any measurement could be off by.
+  std::vector<double> measured;
+  for (size_t i = 0; i < data.t.size(); ++i) {
+    if (std::isfinite(data.force[i])) measured.push_back(data.force[i]);
+    if (!data.tip.empty() && data.tip[i].allFinite())
+      for (int k = 0; k < 3; ++k) measured.push_back(pr.w.tip_weight * data.tip[i][k]);
+    for (const auto& q : data.targets)
+      if (!q.empty() && q[i].allFinite())
+        for (int k = 0; k < 3; ++k) measured.push_back(pr.w.target_weight * q[i][k]);
+  }
+  pr.penalty = 100 * std::max(r0.squaredNorm(), Eigen::Map<const VecX>(measured.data(), static_cast<Eigen::Index>(measured.size())).squaredNorm());
 
   nlopt_opt opt = nlopt_create(NLOPT_LN_BOBYQA, static_cast<unsigned>(n));
   nlopt_set_lower_bounds(opt, lb.data());
@@ -310,7 +405,8 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
   r.evaluations = pr.evaluations;
   r.failed_evaluations = pr.failed;
   r.fitted_run = pr.run(r.values);
-  const VecX rf = pr.residuals(r.fitted_run);
+  const VecX rf = pr.residuals(r.fitted_run, &r.residual_row, &r.residual_channel, &r.target_offsets);
+  for (const Vec3& o : r.target_offsets) r.offset_parameters += o.allFinite() ? 3 : 0;
   r.rms = std::sqrt(rf.squaredNorm() / r.residuals);
   r.residuals_fit = rf;
 
@@ -358,8 +454,8 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
     }
     J.col(static_cast<Eigen::Index>(i)) = (pr.residuals(plus[i]) - pr.residuals(minus[i])) / (hp[i] + hm[i]);
   }
-  const double dof = std::max(1, r.residuals - static_cast<int>(n));
-  const double s2 = std::isfinite(s.noise) && s.noise > 0 ? s.noise * s.noise : rf.squaredNorm() / dof;
+  const double dof = std::max(1, r.residuals - static_cast<int>(n) - r.offset_parameters);
+  const double s2 = std::isfinite(pr.w.noise) ? pr.w.noise * pr.w.noise : rf.squaredNorm() / dof;
   // (J^T J)^-1 in the parameters' scales, by eigen-decomposition: directions with an
   // eigenvalue below 1e-10 of the largest are not determined by the data.
   Eigen::MatrixXd D = Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(n));
