@@ -7,7 +7,7 @@
 # (copy each into test/data/fuzz/<target>/ once fixed: CTest replays them).
 #   bash scripts/fuzz.sh                  # both targets, 60 s each
 #   bash scripts/fuzz.sh --seconds 600    # the long (nightly) mode
-#   bash scripts/fuzz.sh --runs 20000     # a fixed number of inputs from seed 1 (CI: repeatable)
+#   bash scripts/fuzz.sh --runs 6000      # a fixed number of inputs from seed 1 (CI: repeatable)
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 SECONDS_EACH=60
 LIMIT=()
