@@ -49,7 +49,8 @@ from .. import paths
 
 ROOT = paths.source_dir()
 PAGES = ["README.md", "doc/tutorials/00_library.md", "doc/tutorials/01_phantom_insertion.md",
-         "doc/tutorials/02_dbs_brain_shift.md", "doc/tutorials/03_robot_node.md", "doc/cli.md"]
+         "doc/tutorials/02_dbs_brain_shift.md", "doc/tutorials/03_robot_node.md", "doc/tutorials/04_twin_experiment.md",
+         "doc/cli.md"]
 OUTPUTS = {}  # page -> [(block body, its output)] of the blocks run
 FENCE = re.compile(r"^```(\w*)\s*$")
 DIRECTIVE = re.compile(r"^<!--\s*docs:\s*(skip|full|short|edit|background)\b\s*(.*?)\s*-->\s*$")
