@@ -59,6 +59,7 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
     f.precision(10);
     f << "t,samples,new_samples";
     for (const auto& q : p) f << ',' << q.key << ',' << q.key << "_std";
+    for (const auto& q : p) f << ',' << q.key << "_roughness";
     f << ",rms_residual,innovation_rms,consistent";
     for (const auto& n : target_names)
       for (const char* c : {"x", "y", "z"}) f << ',' << n << "_end_" << c;
@@ -74,6 +75,7 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
     for (const auto& k : cps) {
       f << k.t << ',' << k.samples << ',' << k.new_samples;
       for (size_t i = 0; i < p.size(); ++i) f << ',' << k.values[i] << ',' << k.stds[i];
+      for (size_t i = 0; i < p.size(); ++i) f << ',' << (i < k.roughness.size() ? k.roughness[i] : NAN);
       f << ',' << k.rms << ',' << k.innovation_rms << ',' << (k.consistent ? 1 : 0);
       for (const auto& x : k.target_end) f << ',' << x[0] << ',' << x[1] << ',' << x[2];
       for (const auto& c : k.target_cov) f << ',' << std::sqrt(c(0, 0)) << ',' << std::sqrt(c(1, 1)) << ',' << std::sqrt(c(2, 2));
@@ -138,6 +140,8 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
   for (size_t i = 0; i < p.size(); ++i)
     params[p[i].key] = {{"value", v[i]},
                         {"std", cps.empty() ? nlohmann::json(nullptr) : finiteOrNull(cps.back().stds[i])},
+                        {"roughness", cps.empty() || i >= cps.back().roughness.size() ? nlohmann::json(nullptr)
+                                                                                       : finiteOrNull(cps.back().roughness[i])},
                         {"start", p[i].start},
                         {"lower", p[i].lower},
                         {"upper", p[i].upper}};

@@ -127,6 +127,7 @@ int calibrateCommand(const CalibrateOptions& o) {
     params[p.key] = {{"value", r.values[i]},
                      {"std_error", std::isfinite(r.std_errors[i]) ? nlohmann::json(r.std_errors[i]) : nlohmann::json(nullptr)},
                      {"identifiable", static_cast<bool>(r.identifiable[i])},
+                     {"roughness", std::isfinite(r.roughness[i]) ? nlohmann::json(r.roughness[i]) : nlohmann::json(nullptr)},
                      {"start", p.start},
                      {"lower", p.lower},
                      {"upper", p.upper}};

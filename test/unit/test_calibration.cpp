@@ -163,6 +163,8 @@ TEST(Calibration, RecoversKnownValuesFromASyntheticRecord) {
     std::printf("%s: fitted %.6g, truth %.6g, error %.2f noise standard errors (%.3g); the fit's own %.3g\n", keys[i],
                 r.values[i], truth[i], (r.values[i] - truth[i]) / sigma, sigma, r.std_errors[i]);
     EXPECT_TRUE(r.identifiable[i]);
+    // The phantom's force is smooth in both keys: no floor on their standard errors.
+    EXPECT_LT(r.roughness[i], 1e-3) << r.parameters[i].key;
     EXPECT_LT(std::abs(r.values[i] - truth[i]), 3 * sigma) << r.parameters[i].key;
     EXPECT_GT(r.std_errors[i], 0.7 * sigma) << r.parameters[i].key;
     EXPECT_LT(r.std_errors[i], 1.4 * sigma) << r.parameters[i].key;
@@ -237,4 +239,30 @@ TEST(Calibration, SimulatedForceIsTheObservablesAxialForce) {
   EXPECT_EQ(positive, 0) << "the tissue resists the insertion: the axial force is negative while cutting";
   EXPECT_NEAR(cutting / n, -0.02, 0.005);
   fs::remove_all(dir);
+}
+
+// The roughness of a key (force_calibration.hpp): the two halves of a central difference of a
+// smooth residual agree to second order (a quadratic's differ by h r''), a step between them
+// (an event whose timing the key moves) makes them disagree entirely.
+TEST(Calibration, RoughnessTellsAStepFromASlope) {
+  const int m = 200;
+  const double h = 1e-2;
+  VecX r0(m), rp(m), rm(m);
+  for (int i = 0; i < m; ++i) {
+    const double x = i / double(m);
+    // r(p) = a(x) p + b(x) p^2 at p = 1: smooth in p.
+    auto r = [&](double p) { return std::sin(7 * x) * p + 0.1 * x * p * p; };
+    r0[i] = r(1);
+    rp[i] = r(1 + h);
+    rm[i] = r(1 - h);
+  }
+  const double smooth = residualRoughness((rp - r0) / h, (r0 - rm) / h);
+  EXPECT_GT(smooth, 0.0);
+  EXPECT_LT(smooth, 0.01);  // O(h): 2 h |b| / (2 |a|)
+  // An event moved past the samples 100..104 by the forward step only: a jump of 5 there.
+  VecX jumped = rp;
+  jumped.segment(100, 5).array() += 5.0;
+  EXPECT_GT(residualRoughness((jumped - r0) / h, (r0 - rm) / h), kRoughness);
+  EXPECT_NEAR(residualRoughness(VecX::Ones(3), VecX::Zero(3)), 1.0, 1e-15);
+  EXPECT_EQ(residualRoughness(VecX::Zero(3), VecX::Zero(3)), 0.0);
 }

@@ -730,6 +730,7 @@ TEST(Cli, RunAssimilateRejectsBadInputsAndWritesItsOutputs) {
   ASSERT_EQ(r.status, 0) << r.err;
   const auto a = readColumns(d / "out" / "assimilation.csv");
   ASSERT_EQ(a.count("interaction.cutting_force_std"), 1u);
+  ASSERT_EQ(a.count("interaction.cutting_force_roughness"), 1u);
   EXPECT_EQ(a.at("t").size(), 3u);  // 0.3, 0.6 and the record's end 0.9
   const auto inn = readColumns(d / "out" / "innovation.csv");
   EXPECT_EQ(inn.at("t").size(), 45u);
@@ -738,6 +739,7 @@ TEST(Cli, RunAssimilateRejectsBadInputsAndWritesItsOutputs) {
   const auto& p = j.at("assimilation").at("parameters").at("interaction.cutting_force");
   EXPECT_NEAR(p.at("value").get<double>(), std::stod(a.at("interaction.cutting_force").back()), 1e-9);
   EXPECT_TRUE(p.at("std").is_number());
+  EXPECT_TRUE(p.contains("roughness"));
   EXPECT_EQ(j.at("assimilation").at("rejected").at("nonfinite").get<int>(), 1);
   EXPECT_EQ(j.at("assimilation").at("rejected").at("stale").get<int>(), 1);
   EXPECT_EQ(j.at("status"), "ok");  // the run's own summary is still there

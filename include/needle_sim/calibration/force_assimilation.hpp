@@ -56,6 +56,7 @@ struct AssimilationCheckpoint {
   int new_samples = 0;           // since the previous checkpoint
   std::vector<double> values;    // per key
   std::vector<double> stds;      // +inf: the data do not determine the key yet; inconsistent: inflated
+  std::vector<double> roughness; // per key (CalibrationResult::roughness): above kRoughness, std floored
   double rms = 0;                // RMS residual at the fit
   double innovation_rms = 0;     // the new samples against the previous estimate's prediction
   bool consistent = true;        // rms <= 1.5 noise (or too few samples to tell)

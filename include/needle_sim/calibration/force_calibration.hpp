@@ -13,6 +13,15 @@
 // J^T J is (numerically) singular, or a standard error larger than the value itself, marks a
 // parameter the data cannot identify.
 //
+// Smoothness: the central difference's two halves, forward (r(p + h) - r(p)) / h and backward
+// (r(p) - r(p - h)) / h, agree to second order where the residuals are smooth in a key. Where
+// an event whose timing moves with the key (a puncture, a shaft point laid, the grip's release)
+// falls between, they do not, and the Jacobian measures the jump, not the slope: the
+// linearised standard error is then far too small (the cost is rough at that scale and its
+// local minima lie closer together than h). The key's roughness, |fwd - bwd| / (|fwd| + |bwd|)
+// in [0, 1], above kRoughness marks it rough, and its standard error (and covariance) is
+// floored at the step h: the data cannot place it more finely than the events it moves.
+//
 // Every evaluation builds its simulation from the scene file again (the same initial state;
 // runs are deterministic). An evaluation that fails numerically is a penalised point.
 #include <functional>
@@ -86,9 +95,18 @@ struct SimulatedForce {
   std::string failure;
 };
 
+// Roughness above which a key's standard error is floored at its Jacobian step (see above;
+// smooth records give below 1e-6, a DBS cannula's withdrawal 0.7 to 1).
+constexpr double kRoughness = 0.25;
+// |fwd - bwd| / (|fwd| + |bwd|): 0 for equal halves, 1 for one half zero or opposite ones; 0
+// when both are zero.
+double residualRoughness(const VecX& fwd, const VecX& bwd);
+
 struct CalibrationResult {
   std::vector<CalibrationParameter> parameters;  // resolved starts and bounds
   std::vector<double> values, std_errors;        // std error +inf: not identifiable
+  std::vector<double> roughness;                 // per key, in [0, 1]; NaN: not measured
+  std::vector<double> jacobian_steps;            // per key: h [the key's units]
   Eigen::MatrixXd covariance;                    // s^2 (J^T J)^+ in the keys' units (see std_errors)
   std::vector<bool> identifiable;
   // Residuals are in the reference channel's units (MeasurementWeights): N with a force.

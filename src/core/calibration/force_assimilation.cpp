@@ -237,6 +237,7 @@ void ForceAssimilation::checkpoint(double t) {
   k.new_samples = fresh;
   k.values = r.values;
   k.stds = r.std_errors;
+  k.roughness = r.roughness;
   k.rms = r.rms;
   k.innovation_rms = fresh_values ? std::sqrt(innovation2 / fresh_values) : 0.0;
   k.consistent = !stated() || k.samples < 10 || r.rms <= 1.5 * w_.noise;

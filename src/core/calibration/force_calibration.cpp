@@ -137,6 +137,11 @@ std::vector<CalibrationParameter> resolveParameters(const CalibrationSettings& s
   return out;
 }
 
+double residualRoughness(const VecX& fwd, const VecX& bwd) {
+  const double size = fwd.norm() + bwd.norm();
+  return size > 0 ? (fwd - bwd).norm() / size : 0.0;
+}
+
 MeasurementWeights measurementWeights(const CalibrationSettings& s, const ForceRecord& data) {
   const auto check = [](double v, const char* option, const char* what) {
     if (!std::isnan(v) && !(v > 0 && std::isfinite(v)))
@@ -476,9 +481,23 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
     }
   }
   r.covariance = s2 * D * inv * D;
+  // Roughness (see the header): the two halves of each central difference compared.
   for (size_t i = 0; i < n; ++i) {
-    const double se = undetermined[i] ? std::numeric_limits<double>::infinity()
-                                      : pr.scale[i] * std::sqrt(s2 * inv(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(i)));
+    r.jacobian_steps.push_back(1e-2 * pr.scale[i]);
+    double rho = std::numeric_limits<double>::quiet_NaN();
+    if (!plus[i].failed && !minus[i].failed && hp[i] > 0 && hm[i] > 0) {
+      rho = residualRoughness((pr.residuals(plus[i]) - rf) / hp[i], (rf - pr.residuals(minus[i])) / hm[i]);
+    }
+    r.roughness.push_back(rho);
+  }
+  for (size_t i = 0; i < n; ++i) {
+    double se = undetermined[i] ? std::numeric_limits<double>::infinity()
+                                : pr.scale[i] * std::sqrt(s2 * inv(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(i)));
+    if (r.roughness[i] > kRoughness && se < r.jacobian_steps[i]) {
+      const auto ii = static_cast<Eigen::Index>(i);
+      r.covariance(ii, ii) += r.jacobian_steps[i] * r.jacobian_steps[i] - se * se;
+      se = r.jacobian_steps[i];
+    }
     r.std_errors.push_back(se);
     r.identifiable.push_back(std::isfinite(se) && se < std::abs(r.values[i]));
   }

@@ -26,6 +26,7 @@ import json
 import math
 import os
 import random
+import shlex
 import subprocess
 import sys
 
@@ -256,7 +257,7 @@ def main():
                 seed, k, v, r["end"], r["end_std"], 100 * r["end_rel"], r["end_z"], r["half"], r["half_std"],
                 100 * r["half_rel"]))
     cmd = results[0][3]
-    shown = " ".join(c if not c.startswith(a.out) else "DIR" + c[len(a.out):] for c in cmd)
+    shown = " ".join(shlex.quote(c if not c.startswith(a.out) else "DIR" + c[len(a.out):]) for c in cmd)
     shown = shown.replace(tool, "devel/lib/needle_sim/needle_sim").replace(paths.scene(PHANTOM), "config/scenes/" + PHANTOM)
     md = ("Phantom insertion (8×4×4, 2 ms steps), cutting force and grip pressure hidden (drawn per seed from "
           "15–45 mN and 200–800 Pa), force noise %.1f mN, every 5th step; the estimator from the scene's 20 mN and "
@@ -284,7 +285,7 @@ def main():
                 r["end_std"], len(per), 1e3 * per[0][1], 1e3 * per[0][2], 1e3 * per[-1][1], 1e3 * per[-1][2], n_in,
                 len(later)))
         tcmd = tres[0][5]
-        tshown = " ".join(c if not c.startswith(a.out) else "DIR" + c[len(a.out):] for c in tcmd)
+        tshown = " ".join(shlex.quote(c if not c.startswith(a.out) else "DIR" + c[len(a.out):]) for c in tcmd)
         tshown = tshown.replace(tool, "devel/lib/needle_sim/needle_sim").replace(paths.scene(PHANTOM), "config/scenes/" + PHANTOM)
         md += ("\nA measured target (`--target`): the phantom with a target 1.5 mm beside the path, measured every 0.1 s "
                "with %.0f µm of noise per coordinate at the patient's position plus a hidden offset (drawn per seed, up "
@@ -322,7 +323,7 @@ def main():
             maha = ("the STN's published covariance has rank %d (from %d keys): within its range the patient's STN end "
                     "position is %.1f standard deviations from the prediction, and %.4f mm off that range, where the "
                     "covariance says nothing" % (rank, len(hidden), math.sqrt(d2), 1e3 * off))
-        dshown = " ".join(c if not c.startswith(a.out) else "DIR" + c[len(a.out):] for c in dcmd)
+        dshown = " ".join(shlex.quote(c if not c.startswith(a.out) else "DIR" + c[len(a.out):]) for c in dcmd)
         dshown = dshown.replace(tool, "devel/lib/needle_sim/needle_sim").replace(paths.scene(DBS), "config/scenes/" + DBS)
         md += ("\nDBS (dbs_coarse, cannula force, noise %.1f mN), tissue stiffness and grip hidden:\n\n```bash\n%s\n```\n\n"
                "%s\n\n%s\n\nAt the end %s.\n" % (1e3 * a.dbs_noise, dshown, "\n".join(dl), "\n".join(sl), maha))
