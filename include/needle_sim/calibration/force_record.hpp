@@ -9,6 +9,7 @@
 // it. And, for a target the caller names (e.g. from an intraoperative image), its measured
 // position `<target>_x`, `_y`, `_z` [m, the scene's frame: the run's target columns]. Sensors
 // at different rates leave a blank cell where they have no sample. Other columns are ignored.
+#include <array>
 #include <string>
 #include <vector>
 
@@ -44,5 +45,16 @@ ForceRecord readForceCsv(const std::string& path, ForceCsvRejects* rejects = nul
 
 // Linear interpolation of (t, y) at time x, clamped at the ends; t strictly increasing.
 double interpolate(const std::vector<double>& t, const std::vector<double>& y, double x);
+
+// A simulated point's per-step positions (the tip, a target), split into its coordinates
+// once, interpolated at measured times as interpolate() does each.
+class PointSeries {
+ public:
+  explicit PointSeries(const std::vector<Vec3>& p);
+  Vec3 at(const std::vector<double>& t, double x) const;
+
+ private:
+  std::array<std::vector<double>, 3> c_;
+};
 
 }  // namespace needle_sim

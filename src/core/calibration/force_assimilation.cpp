@@ -1,7 +1,6 @@
 #include "needle_sim/calibration/force_assimilation.hpp"
 
 #include <algorithm>
-#include <array>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -25,30 +24,15 @@ double robustScale(const VecX& r) {
   return 1.4826 * a[a.size() / 2];
 }
 
-// A coordinate series of per-step points.
-std::vector<double> coordinate(const std::vector<Vec3>& p, int c) {
-  std::vector<double> out;
-  out.reserve(p.size());
-  for (const Vec3& x : p) out.push_back(x[c]);
-  return out;
-}
-
-using Series3 = std::array<std::vector<double>, 3>;
-Series3 series(const std::vector<Vec3>& p) { return {coordinate(p, 0), coordinate(p, 1), coordinate(p, 2)}; }
-
-Vec3 interpolate3(const std::vector<double>& t, const Series3& c, double x) {
-  return Vec3(interpolate(t, c[0], x), interpolate(t, c[1], x), interpolate(t, c[2], x));
-}
-
 // A run's target j, mean over the times the window has its samples (NaN: none).
 Vec3 sampledMean(const SimulatedForce& f, const ForceRecord& w, size_t j) {
   if (j >= f.targets.size() || j >= w.targets.size() || w.targets[j].empty()) return Vec3::Constant(NAN);
-  const Series3 c = series(f.targets[j]);
+  const PointSeries c(f.targets[j]);
   Vec3 sum = Vec3::Zero();
   int n = 0;
   for (size_t i = 0; i < w.t.size(); ++i)
     if (w.targets[j][i].allFinite()) {
-      sum += interpolate3(f.t, c, w.t[i]);
+      sum += c.at(f.t, w.t[i]);
       ++n;
     }
   return n ? Vec3(sum / n) : Vec3::Constant(NAN);
@@ -127,9 +111,9 @@ void ForceAssimilation::checkpoint(double t) {
   // The samples that arrived since the last checkpoint, predicted before they are used.
   int fresh = 0, fresh_values = 0;
   double innovation2 = 0;
-  const Series3 tip = series(prediction_.tip);
-  std::vector<Series3> target;
-  for (const auto& q : prediction_.targets) target.push_back(series(q));
+  const PointSeries tip(prediction_.tip);
+  std::vector<PointSeries> target;
+  for (const auto& q : prediction_.targets) target.emplace_back(q);
   for (auto& x : samples_)
     if (x.t > fitted_until_ + 1e-12 && x.t <= t + 1e-12) {
       x.arrived = true;
@@ -140,7 +124,7 @@ void ForceAssimilation::checkpoint(double t) {
         ++fresh_values;
       }
       if (x.hasTip()) {
-        x.tip_predicted = interpolate3(prediction_.t, tip, x.t);
+        x.tip_predicted = tip.at(prediction_.t, x.t);
         innovation2 += w_.tip_weight * w_.tip_weight * (x.tip_measured - x.tip_predicted).squaredNorm();
         fresh_values += 3;
       }
@@ -148,7 +132,7 @@ void ForceAssimilation::checkpoint(double t) {
         if (x.hasTarget(j) && j < target.size()) {
           // The model's, with the last estimate of the offset (none before the first).
           const Vec3 offset = j < offsets_.size() && offsets_[j].allFinite() ? offsets_[j] : Vec3::Zero();
-          x.target_predicted[j] = interpolate3(prediction_.t, target[j], x.t) + offset;
+          x.target_predicted[j] = target[j].at(prediction_.t, x.t) + offset;
           innovation2 += w_.target_weight * w_.target_weight * (x.target_measured[j] - x.target_predicted[j]).squaredNorm();
           fresh_values += 3;
         }

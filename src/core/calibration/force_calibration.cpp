@@ -260,25 +260,20 @@ struct Problem {
                  std::vector<Vec3>* offsets = nullptr) const {
     std::vector<double> r;
     const bool tip = !data->tip.empty();
-    std::vector<double> coordinate[3];
-    if (tip)
-      for (int k = 0; k < 3; ++k)
-        for (const Vec3& x : f.tip) coordinate[k].push_back(x[k]);
+    const PointSeries tip_series(tip ? f.tip : std::vector<Vec3>{});
     // Per measured target: the simulation at its samples, and its offset.
     const size_t nt = data->targets.size();
     std::vector<std::vector<Vec3>> at(nt);
     std::vector<Vec3> offset(nt, Vec3::Constant(NAN));
     for (size_t j = 0; j < nt; ++j) {
       if (data->targets[j].empty() || j >= f.targets.size()) continue;
-      std::vector<double> c[3];
-      for (int k = 0; k < 3; ++k)
-        for (const Vec3& x : f.targets[j]) c[k].push_back(x[k]);
+      const PointSeries c(f.targets[j]);
       Vec3 sum = Vec3::Zero();
       int count = 0;
       at[j].assign(data->t.size(), Vec3::Constant(NAN));
       for (size_t i = 0; i < data->t.size(); ++i)
         if (data->t[i] <= until + 1e-12 && data->targets[j][i].allFinite()) {
-          for (int k = 0; k < 3; ++k) at[j][i][k] = interpolate(f.t, c[k], data->t[i]);
+          at[j][i] = c.at(f.t, data->t[i]);
           sum += data->targets[j][i] - at[j][i];
           ++count;
         }
@@ -291,11 +286,13 @@ struct Problem {
         r.push_back(interpolate(f.t, f.force, data->t[i]) - data->force[i]);
         if (rows) rows->push_back(static_cast<int>(i)), channels->push_back(0);
       }
-      if (tip && data->tip[i].allFinite())
+      if (tip && data->tip[i].allFinite()) {
+        const Vec3 at_tip = tip_series.at(f.t, data->t[i]);
         for (int k = 0; k < 3; ++k) {
-          r.push_back(w.tip_weight * (interpolate(f.t, coordinate[k], data->t[i]) - data->tip[i][k]));
+          r.push_back(w.tip_weight * (at_tip[k] - data->tip[i][k]));
           if (rows) rows->push_back(static_cast<int>(i)), channels->push_back(1 + k);
         }
+      }
       for (size_t j = 0; j < nt; ++j)
         if (!at[j].empty() && at[j][i].allFinite())
           for (int k = 0; k < 3; ++k) {

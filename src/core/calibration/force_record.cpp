@@ -164,4 +164,15 @@ double interpolate(const std::vector<double>& t, const std::vector<double>& y, d
   return (1 - w) * y[i - 1] + w * y[i];
 }
 
+PointSeries::PointSeries(const std::vector<Vec3>& p) {
+  for (int k = 0; k < 3; ++k) {
+    c_[k].reserve(p.size());
+    for (const Vec3& x : p) c_[k].push_back(x[k]);
+  }
+}
+
+Vec3 PointSeries::at(const std::vector<double>& t, double x) const {
+  return Vec3(interpolate(t, c_[0], x), interpolate(t, c_[1], x), interpolate(t, c_[2], x));
+}
+
 }  // namespace needle_sim
