@@ -8,4 +8,5 @@ cd "$BUILD"
 # ROS's Python tools (rostest, hztest) start with `#!/usr/bin/env python3`: Debian's
 # interpreter must come first, not a pyenv one that has no rospy.
 export PATH="/usr/bin:$PATH"
-ctest --output-on-failure "$@"
+# Two tests at a time (one per core); those on the wall clock run alone (RUN_SERIAL: CMakeLists.txt).
+ctest --output-on-failure -j"$(getconf _NPROCESSORS_ONLN)" "$@"
