@@ -16,6 +16,7 @@
 
 #include "needle_sim/adapt/mesh_adaptation.hpp"
 #include "needle_sim/core/blas_threads.hpp"
+#include "needle_sim/fem/embedded_point.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
@@ -462,12 +463,12 @@ TEST(Adaptivity, PhantomInsertionAgreesWithUniform32x16x16) {
   for (const auto& r : rows)
     if (first_contact < 0 && r[1] != "approaching") first_contact = std::stol(r[0]);
   struct Agreement {
-    double max = 0, mean = 0;
+    double max = 0, mean = 0, with_puncture = 0;  // with_puncture: the largest at any compared step
     int max_dofs = 0;
   };
   double umax = 0;
-  auto against = [&](const std::string& scene) {
-    Simulation sim(loadScene(kScenes + scene));
+  auto against = [&](const std::string& scene, const std::vector<std::string>& overrides = {}) {
+    Simulation sim(loadScene(kScenes + scene, overrides));
     Agreement a;
     double esum = 0;
     size_t next = 0;
@@ -484,6 +485,7 @@ TEST(Adaptivity, PhantomInsertionAgreesWithUniform32x16x16) {
         umax = std::max(umax, ref.norm());
         e = std::max(e, (sim.probeDisplacement(i) - ref).norm());
       }
+      a.with_puncture = std::max(a.with_puncture, e);
       if (std::abs(sim.stepIndex() - first_contact) <= 10) continue;
       a.max = std::max(a.max, e);
       esum += e;
@@ -493,6 +495,9 @@ TEST(Adaptivity, PhantomInsertionAgreesWithUniform32x16x16) {
   };
   const Agreement adaptive = against("phantom_insertion_adaptive.yaml");
   const Agreement uniform = against("phantom_insertion_16x8x8.yaml");
+  // Refined ahead of the tip over the trajectory's next 0.4 s (#38 item 3): the mesh no longer
+  // lags the tip, nor the entry point the touch.
+  const Agreement ahead = against("phantom_insertion_adaptive.yaml", {"adaptivity.lookahead=0.4"});
   ASSERT_GT(umax, 0);
   std::printf("against 32x16x16: adaptive max %.4f, time-mean %.4f of the largest probe displacement, max %d tissue DOFs; "
               "uniform 16x8x8 %.4f, %.4f, %d DOFs\n",
@@ -504,4 +509,59 @@ TEST(Adaptivity, PhantomInsertionAgreesWithUniform32x16x16) {
   EXPECT_LT(adaptive.mean, 0.2 * uniform.mean);
   EXPECT_LT(adaptive.mean / umax, 0.02);
   EXPECT_LT(adaptive.max_dofs, 28611 / 10);
+  std::printf("with lookahead 0.4 s: max %.4f, at any compared step %.4f (without: %.4f), %d DOFs\n", ahead.max / umax,
+              ahead.with_puncture / umax, adaptive.with_puncture / umax, ahead.max_dofs);
+  EXPECT_LT(ahead.max / umax, 0.02);            // the goal (#38): 2 %
+  EXPECT_LT(ahead.with_puncture / umax, 0.10);  // every compared step, the touch's 10 included, within 10 %
+  EXPECT_GT(adaptive.with_puncture / umax, 0.10);  // which it is not without (the comparison says something)
+  EXPECT_LT(ahead.max_dofs, 28611 / 10);
+}
+
+// Refinement ahead of the tip (adaptivity.lookahead, #38 item 3): the passes refine the path
+// the trajectory says the tip will take, so the element holding the tip's material point is
+// at max_level from the touch on, though mesh changes switch 30 ms after their pass and the
+// SPR estimate sees an error only once the tip has moved the tissue. Without it the tip
+// enters coarse elements (the mesh lags it).
+TEST(Adaptivity, LookaheadRefinesThePathBeforeTheTipGetsThere) {
+  struct Lag {
+    int steps = 0, coarse = 0;     // steps in the tissue, of them with the tip in a coarser element
+    int touch_level = -1;          // the entry element's level at the touch
+    long ahead = 0;                // elements refined for lying ahead
+  };
+  auto run = [](const std::string& lookahead) {
+    Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml",
+                             {"time.duration=1.6", "adaptivity.lookahead=" + lookahead}));
+    const int max_level = sim.scene().adaptivity->max_level;
+    Lag lag;
+    auto levelAt = [&](const Vec3& p) {  // in the mesh the steps use (not the forest a pass may be changing)
+      const PointLocator locator(sim.tissue().mesh());
+      EmbeddedPoint ep;
+      return locator.locate(p, ep) ? sim.elementLevels()[ep.element] : -1;
+    };
+    InsertionState before = InsertionState::Approaching;
+    for (long k = 0; k < sim.scene().numSteps(); ++k) {
+      sim.step();
+      const InsertionState s = sim.interaction()->state(0);
+      if (before == InsertionState::Approaching && s == InsertionState::InContact)
+        lag.touch_level = levelAt(sim.needle(0).tipPosition() + 1e-4 * sim.needle(0).tipDirection());
+      before = s;
+      if (s != InsertionState::Inserted) continue;
+      ++lag.steps;
+      if (levelAt(sim.interaction()->cutPath(0).back()) < max_level) ++lag.coarse;
+    }
+    lag.ahead = sim.adaptationCounters().ahead_marked;
+    return lag;
+  };
+  setBlasThreads(1);  // one summation order: the same run every time
+  const Lag with = run("0.1"), without = run("0");
+  std::printf("tip in a coarser element: %d of %d steps with lookahead (%ld marked ahead), %d of %d without; "
+              "entry element's level at the touch: %d with, %d without\n",
+              with.coarse, with.steps, with.ahead, without.coarse, without.steps, with.touch_level, without.touch_level);
+  ASSERT_GT(with.steps, 500);
+  EXPECT_GT(without.coarse, 0);  // the comparison says something: without it the mesh lags
+  EXPECT_EQ(with.coarse, 0);
+  EXPECT_EQ(with.touch_level, 2);
+  EXPECT_LT(without.touch_level, 2);
+  EXPECT_GT(with.ahead, 0);
+  EXPECT_EQ(without.ahead, 0);
 }

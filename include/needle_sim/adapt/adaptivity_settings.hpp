@@ -32,6 +32,11 @@ struct AdaptivitySettings {
   // waiting for it, when another pass falls due (0: on the stepping thread). The results are
   // those of a pass on the stepping thread. Doc: method.md, "Refinement and coarsening".
   double estimate_delay = 0;
+  // Refinement ahead of the tip (doc/method.md, "Refinement and coarsening"): every pass also
+  // refines to max_level the elements each needle's tip will reach within this time [s] by
+  // its trajectory's base motion (the entry point before the touch), first within the DOF
+  // budget, and merges none of them while they lie ahead. 0: off.
+  double lookahead = 0;
   bool coarsen = false;
   double theta_coarsen = 0.05;  // merge 8 children when sqrt(sum eta_c^2) < theta_coarsen max eta ...
   int coarsen_after = 3;        // ... at this many consecutive estimates (hysteresis)
@@ -62,6 +67,8 @@ struct AdaptivitySettings {
                   "dynamic steps: build a changed mesh's body in the background and move to it this long after the decision (whole steps of the dt in use, at least one); 0: at once, on the stepping thread ([method.md](method.md#refinement-and-coarsening))")
             .real("estimate_delay", [](S& s) -> double& { return s.estimate_delay; }, "s", Range::closed(0, 10),
                   "dynamic steps, `spr` estimator, at most `rebuild_delay`: run each pass on a background thread from a copy of its step's state and take its decision up this long after it; the same run as passes on the stepping thread, without their cost on it; 0: on the stepping thread")
+            .real("lookahead", [](S& s) -> double& { return s.lookahead; }, "s", Range::closed(0, 10),
+                  "refine to `max_level`, first, the elements each needle's tip will reach within this time by its trajectory (the path ahead, the entry point before the touch), so that deferred mesh changes do not lag the tip; 0: off ([method.md](method.md#refinement-ahead-of-the-tip))")
             .flag("coarsen.enabled", [](S& s) -> bool& { return s.coarsen; }, "merge children back; coarsening runs only with `enabled: true`")
             .real("coarsen.theta_coarsen", [](S& s) -> double& { return s.theta_coarsen; }, "", Range::open(0, 1),
                   "merge 8 children when √(Σ η_c²) < theta_coarsen·max η (with `max` marking and coarsening: < θ/2) ...")

@@ -23,6 +23,7 @@ namespace needle_sim {
 struct AdaptationResult {
   bool changed = false;
   int marked = 0;      // elements marked for refinement
+  int ahead = 0;       // of them, marked for lying ahead of a tip (AdaptivitySettings::lookahead)
   int refined = 0;     // cells split, including those the 2:1 balance required
   int coarsened = 0;   // parents whose children were merged back
   bool budget_reached = false;    // max_dofs stopped the refinement
@@ -43,8 +44,9 @@ class MeshAdaptation {
 
   // Marks, coarsens and refines for the estimate of the current active mesh (its eta: the
   // element indicators). refine false: only coarsening (a goal-oriented run whose targets
-  // meet their tolerance).
-  AdaptationResult adapt(const ErrorEstimate& estimate, bool refine = true);
+  // meet their tolerance). ahead: rest-configuration points on the tips' paths ahead; the
+  // elements holding them are refined to max_level before the marked ones and not merged.
+  AdaptationResult adapt(const ErrorEstimate& estimate, bool refine = true, const std::vector<Vec3>& ahead = {});
   // Refines the given active elements (tests, initial refinement), with 2:1 balance.
   AdaptationResult refineElements(const std::vector<int>& elements);
   // Merges the children of the parents of the given active elements (tests).
@@ -54,6 +56,11 @@ class MeshAdaptation {
   // current mesh. Hanging nodes get their parent field's value too (which the hanging
   // constraint reproduces when the field is trilinear on the coarse side).
   VecX transfer(const VecX& previous) const;
+
+  // Indicators at or below this are round-off, however small the largest estimate seen so
+  // far (an unloaded body refined ahead of a needle: its field is round-off of the hanging
+  // nodes' constraints, which the max rule would otherwise refine).
+  void setRoundOff(double eta) { round_off_ = eta; }
 
   // Makes the current refinement a floor: later passes never merge what is refined now
   // (the mesh the brain shift was computed on carries its preload).
@@ -73,6 +80,7 @@ class MeshAdaptation {
   std::vector<int> previous_node_id_;      // forest ids of the previous mesh's nodes
   std::unordered_map<int, int> small_for_;  // parent cell -> consecutive passes its children were small
   double eta_scale_ = 0;                    // largest global estimate seen
+  double round_off_ = 0;                    // setRoundOff
   std::unordered_map<int, char> kept_;      // parents that may not be merged
   static constexpr double kNoiseFloor = 1e-6;
 };

@@ -34,6 +34,7 @@ struct AdaptationCounters {
   long background_passes = 0;      // passes run on a background thread
   long pass_waits = 0;             // ... whose decision had to be waited for
   long passes_after_decision = 0;  // passes due while a decision was pending, started at its step
+  long ahead_marked = 0;           // elements marked for lying ahead of a tip (lookahead)
 };
 
 // The clock the schedule counts in: steps done, the step dt last changed at, dt.
@@ -57,6 +58,9 @@ class AdaptationPasses {
   AdaptationPasses(const AdaptationPasses&) = delete;
   AdaptationPasses& operator=(const AdaptationPasses&) = delete;
   ~AdaptationPasses();
+  // AdaptivitySettings::lookahead: the rest-configuration points on the tips' paths ahead,
+  // taken on the stepping thread when a pass starts (none: no refinement ahead).
+  void setAhead(std::function<std::vector<Vec3>()> ahead) { ahead_ = std::move(ahead); }
 
   // After a step that may adapt (dynamic, or with needles): takes up a pending decision or
   // switch due now, and runs a pass when one is due. signature: the constraint counts and
@@ -96,6 +100,8 @@ class AdaptationPasses {
   ErrorEstimator& estimator_;
   bool goal_;
   std::function<std::vector<Vec3>()> points_;
+  std::function<std::vector<Vec3>()> ahead_;
+  std::vector<Vec3> ahead() const { return ahead_ ? ahead_() : std::vector<Vec3>{}; }
   std::unique_ptr<PendingRebuild> pending_rebuild_;
   std::unique_ptr<PendingPass> pending_pass_;
   AdaptationCounters counters_;

@@ -175,6 +175,9 @@ class Simulation {
   // The estimates bound to the tissue body were made for another state or mesh.
   void forgetEstimates();
   std::vector<Vec3> constraintPoints() const;
+  // AdaptivitySettings::lookahead: points on each needle's path ahead of its tip (rest frame).
+  std::vector<Vec3> aheadPoints() const;
+  double finest_edge_ = 0;  // the finest element's edge the adaptivity allows [m]
   // The brain-shift pre-step and what the insertion keeps of it; the re-aimed needles.
   void preStep();
   void replanNeedles();

@@ -5,6 +5,8 @@
 #include <cmath>
 #include <functional>
 
+#include "needle_sim/fem/embedded_point.hpp"
+
 namespace needle_sim {
 
 namespace {
@@ -25,7 +27,7 @@ void MeshAdaptation::activate() {
   active_ = forest_.active();
 }
 
-AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est, bool refine) {
+AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est, bool refine, const std::vector<Vec3>& ahead) {
   const int ne = active_.mesh.numElements();
   assert(static_cast<int>(est.eta.size()) == ne);
   AdaptationResult res;
@@ -34,7 +36,7 @@ AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est, bool refine) {
   // of a field that has (nearly) vanished, e.g. after the needle is withdrawn; they are
   // never marked, and children below it may always be merged.
   eta_scale_ = std::max(eta_scale_, est.global);
-  const double floor = kNoiseFloor * eta_scale_;
+  const double floor = std::max(kNoiseFloor * eta_scale_, round_off_);
 
   // 1. Marking, unless the estimate already meets the tolerance.
   std::vector<int> marked;
@@ -45,9 +47,26 @@ AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est, bool refine) {
     for (int e = 0; e < ne; ++e) refinable[e] = active_.level[e] < settings_.max_level && est.eta[e] > floor;
     marked = marking_->mark(est.eta, refinable);
   }
-  res.marked = static_cast<int>(marked.size());
   std::vector<char> is_marked(ne, 0);
   for (int e : marked) is_marked[e] = 1;
+  // The elements ahead of the tips: those below max_level refined first (one level a pass),
+  // all of them kept from merging while they are ahead.
+  std::vector<int> ahead_cells;
+  if (!ahead.empty()) {
+    const PointLocator locator(active_.mesh);
+    std::vector<char> seen(ne, 0);
+    EmbeddedPoint ep;
+    for (const Vec3& p : ahead) {
+      if (!locator.locate(p, ep) || seen[ep.element]) continue;
+      seen[ep.element] = 1;
+      if (active_.level[ep.element] < settings_.max_level) {
+        ahead_cells.push_back(active_.cell[ep.element]);
+        if (!is_marked[ep.element]) ++res.ahead;
+      }
+      is_marked[ep.element] = 1;
+    }
+  }
+  res.marked = static_cast<int>(marked.size()) + res.ahead;
 
   // 2. Coarsening candidates: parents whose eight children are active and whose combined
   //    error has stayed below theta_coarsen * max eta for coarsen_after passes.
@@ -89,9 +108,11 @@ AdaptationResult MeshAdaptation::adapt(const ErrorEstimate& est, bool refine) {
   }
 
   // 3. Refinement, largest errors first, within the DOF budget.
-  std::vector<int> cells;
+  std::vector<int> cells = ahead_cells;
   std::sort(marked.begin(), marked.end(), [&](int a, int b) { return est.eta[a] > est.eta[b]; });
-  for (int e : marked) cells.push_back(active_.cell[e]);
+  for (int e : marked)
+    if (std::find(ahead_cells.begin(), ahead_cells.end(), active_.cell[e]) == ahead_cells.end())
+      cells.push_back(active_.cell[e]);
   if (settings_.max_dofs <= 0) {
     res.refined = forest_.refine(cells);
   } else if (3 * forest_.numActiveNodes() >= settings_.max_dofs) {
@@ -164,6 +185,7 @@ MeshAdaptation::MeshAdaptation(const MeshAdaptation& o)
       previous_node_id_(o.previous_node_id_),
       small_for_(o.small_for_),
       eta_scale_(o.eta_scale_),
+      round_off_(o.round_off_),
       kept_(o.kept_) {}
 
 VecX MeshAdaptation::transfer(const VecX& previous) const {

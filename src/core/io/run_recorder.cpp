@@ -333,6 +333,7 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
                        {"background_passes", sim_.adaptationCounters().background_passes},
                        {"pass_waits", sim_.adaptationCounters().pass_waits},
                        {"passes_after_decision", sim_.adaptationCounters().passes_after_decision},
+                       {"ahead_marked", sim_.adaptationCounters().ahead_marked},
                        {"mesh_changes", mesh_changes_},
                        {"cells_refined_total", refined_total_},
                        {"cells_coarsened_total", coarsened_total_},

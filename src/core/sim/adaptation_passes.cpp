@@ -110,7 +110,7 @@ void AdaptationPasses::settle(bool build) const {
 
 AdaptationResult AdaptationPasses::pass() {
   const ErrorEstimate& indicators = estimator_.localErrors();
-  return tissue_.adaptation()->adapt(indicators, estimator_.refinementWanted());
+  return tissue_.adaptation()->adapt(indicators, estimator_.refinementWanted(), ahead());
 }
 
 void AdaptationPasses::flush(StepStats& stats) {
@@ -132,6 +132,7 @@ void AdaptationPasses::adaptNow(const StepClock& clock, bool defer, StepStats& s
   estimator_.localErrors();
   const auto t1 = steadyNow();
   const AdaptationResult r = pass();
+  counters_.ahead_marked += r.ahead;
   const auto t2 = steadyNow();
   const bool deferred = r.changed && defer && lagSteps(settings_.rebuild_delay, clock.dt) > 0;
   if (deferred) startRebuild(clock);
@@ -208,7 +209,7 @@ void AdaptationPasses::startPass(const StepClock& clock) {
                   std::launch::async,
                   [tissue, energy, spr, forest, reference, h = clock.dt, decided = std::move(decided), slot = pp->slot,
                    retired = tissue_.takeRetired(), x = VecX(body.positions()), v = VecX(body.velocities()),
-                   guesses = body.model().rotationGuesses(), points = points_()]() mutable
+                   guesses = body.model().rotationGuesses(), points = points_(), ahead = ahead()]() mutable
                   -> std::shared_ptr<AdaptiveTissue::Prepared> {
                     lowerThisThreadPriority();
                     nameThisThread("ns_adapt");
@@ -224,7 +225,7 @@ void AdaptationPasses::startPass(const StepClock& clock) {
                       const auto t0 = steadyNow();
                       d->estimate = spr->estimate(x, reference, &guesses);
                       const auto t1 = steadyNow();
-                      d->result = forest->adapt(d->estimate);
+                      d->result = forest->adapt(d->estimate, true, ahead);
                       if (d->result.changed) {
                         change = tissue->forestMesh(*forest);
                         xt = forest->transfer(x);
@@ -265,6 +266,7 @@ void AdaptationPasses::takePass(StepStats& stats) {
     d = pp.slot->d;
   }
   energy_.adopt(d->estimate);  // the last one made (of the pass's step, not of this one)
+  counters_.ahead_marked += d->result.ahead;
   stats.refined += d->result.refined;
   stats.coarsened += d->result.coarsened;
   if (d->result.changed) {

@@ -126,7 +126,8 @@ void Simulation::makeEstimation(const Simulation* o) {
   // The regularised point of the goal estimate: a ball of half the finest element's edge.
   const auto X = tissue_->body().mesh().elementCorners(0);
   const double edge = (X.colwise().maxCoeff() - X.colwise().minCoeff()).minCoeff();
-  const double radius = 0.5 * edge / std::pow(2.0, scene_.adaptivity ? scene_.adaptivity->max_level : 0);
+  finest_edge_ = edge / std::pow(2.0, scene_.adaptivity ? scene_.adaptivity->max_level : 0);
+  const double radius = 0.5 * finest_edge_;
   if (o) {
     energy_ = std::make_unique<EnergyErrorEstimator>(*o->energy_, &tissue_->body(), &tissue_->reference());
     target_errors_ = std::make_unique<TargetErrorEstimator>(*o->target_errors_);
@@ -145,6 +146,7 @@ void Simulation::makeEstimation(const Simulation* o) {
     passes_ = std::make_unique<AdaptationPasses>(*scene_.adaptivity, *tissue_, *energy_, markingEstimator(),
                                                  !goal_targets_.empty(), points);
   }
+  if (passes_ && scene_.adaptivity->lookahead > 0) passes_->setAhead([this] { return aheadPoints(); });
   tissue_->setOnSwitch([this](AdaptiveTissue::Switch& s) { onMeshSwitch(s); });
 }
 
@@ -160,6 +162,31 @@ std::vector<Vec3> Simulation::constraintPoints() const {
   std::vector<Vec3> points;
   if (interaction_)
     for (const auto& c : interaction_->constraints()) points.push_back(c->tissue.rest);
+  return points;
+}
+
+std::vector<Vec3> Simulation::aheadPoints() const {
+  // The segment the tip will sweep within the lookahead by its base's commanded advance,
+  // sampled at half the finest edge; it starts that advance (at least two finest edges)
+  // behind the tip, since the material under an indenting tip sat behind it at rest. Each
+  // sample also a quarter edge off the axis in four directions: an axis along element faces
+  // or edges (the phantom's) has its elements on every side refined, not the one a point
+  // on the boundary happens to be located in.
+  std::vector<Vec3> points;
+  const double t = time(), h = scene_.adaptivity->lookahead, step = 0.5 * finest_edge_;
+  for (const auto& n : needles_) {
+    const BasePose now = n->trajectory().pose(t), later = n->trajectory().pose(t + h);
+    const double advance = (later.position - now.position).dot(now.direction);
+    if (!(advance > 0)) continue;
+    const Vec3 tip = n->tipPosition(), d = now.direction;
+    const Vec3 u = d.unitOrthogonal(), v = d.cross(u);
+    const double back = std::max(advance, 2 * finest_edge_), off = 0.25 * finest_edge_ / std::sqrt(2.0);
+    for (double s = -back; s <= advance + step; s += step) {
+      const Vec3 c = tip + s * d;
+      points.push_back(c);
+      for (const Vec3& w : {Vec3(u + v), Vec3(u - v), Vec3(v - u), Vec3(-u - v)}) points.push_back(c + off * w);
+    }
+  }
   return points;
 }
 

@@ -37,6 +37,11 @@ RUNS = [
     ("adaptive theta 0.1, 2 levels", "phantom_insertion_adaptive.yaml", ["adaptivity.theta=0.1", "adaptivity.coarsen.theta_coarsen=0.02"]),
     ("adaptive theta 0.3, 2 levels, no coarsening", "phantom_insertion_adaptive.yaml",
      ["adaptivity.coarsen.enabled=false"]),
+    # Refinement ahead of the tip (adaptivity.lookahead: the trajectory's next 0.2 or 0.4 s).
+    ("adaptive theta 0.3, 2 levels, lookahead 0.2 s", "phantom_insertion_adaptive.yaml", ["adaptivity.lookahead=0.2"]),
+    ("adaptive theta 0.3, 2 levels, lookahead 0.4 s", "phantom_insertion_adaptive.yaml", ["adaptivity.lookahead=0.4"]),
+    ("adaptive theta 0.1, 2 levels, lookahead 0.4 s", "phantom_insertion_adaptive.yaml",
+     ["adaptivity.theta=0.1", "adaptivity.coarsen.theta_coarsen=0.02", "adaptivity.lookahead=0.4"]),
 ]
 REFERENCE = "uniform 32x16x16"
 
