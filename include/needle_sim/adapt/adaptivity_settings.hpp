@@ -32,7 +32,7 @@ struct AdaptivitySettings {
   // waiting for it, when another pass falls due (0: on the stepping thread). The results are
   // those of a pass on the stepping thread. Doc: method.md, "Refinement and coarsening".
   double estimate_delay = 0;
-  // Refinement ahead of the tip (doc/method.md, "Refinement and coarsening"): every pass also
+  // Refinement ahead of the tip (doc/method.md, "Refinement ahead of the tip"): every pass also
   // refines to max_level the elements each needle's tip will reach within this time [s] by
   // its trajectory's base motion (the entry point before the touch), first within the DOF
   // budget, and merges none of them while they lie ahead. 0: off.
