@@ -11,4 +11,5 @@ set(NEEDLE_SIM_ROS_LAYER_SOURCES
   src/ros/limits_reconfigure.cpp
   src/ros/node_parameters.cpp
   src/ros/output_queue.cpp
-  src/ros/conversions.cpp)
+  src/ros/conversions.cpp
+  src/ros/node_assimilation.cpp)

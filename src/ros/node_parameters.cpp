@@ -155,6 +155,43 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   pnh.param("deadline_warn_fraction", p.deadline_warn_fraction, p.deadline_warn_fraction);
   if (!(p.deadline_warn_fraction >= 0) || !(p.deadline_warn_fraction <= 1))
     throw InputError("", "~deadline_warn_fraction", "must be in [0, 1]");
+  // ~assimilation/keys: a list of scene keys or one comma-separated string (as --assimilate).
+  AssimilationParameters& a = p.assimilation;
+  XmlRpc::XmlRpcValue keys;
+  if (pnh.getParam("assimilation/keys", keys)) {
+    const char* what = "must be a list of scene keys or one comma-separated string of them";
+    std::vector<std::string> items;
+    if (keys.getType() == XmlRpc::XmlRpcValue::TypeArray) {
+      for (int i = 0; i < keys.size(); ++i) {
+        if (keys[i].getType() != XmlRpc::XmlRpcValue::TypeString) throw InputError("", "~assimilation/keys", what);
+        items.push_back(static_cast<std::string>(keys[i]));
+      }
+    } else if (keys.getType() == XmlRpc::XmlRpcValue::TypeString) {
+      std::string k;
+      for (char c : static_cast<std::string>(keys) + ",") {
+        if (c == ',') {
+          items.push_back(k);
+          k.clear();
+        } else if (c != ' ') {
+          k += c;
+        }
+      }
+    } else {
+      throw InputError("", "~assimilation/keys", what);
+    }
+    for (const std::string& k : items)
+      if (!k.empty()) a.keys.push_back(k);
+  }
+  pnh.param("assimilation/every", a.every, a.every);
+  pnh.param("assimilation/wrench_noise", a.wrench_noise, a.wrench_noise);
+  pnh.param("assimilation/tip_noise", a.tip_noise, a.tip_noise);
+  pnh.param("assimilation/target_noise", a.target_noise, a.target_noise);
+  pnh.param("assimilation/outlier_gate", a.outlier_gate, a.outlier_gate);
+  pnh.param("assimilation/needle", a.needle, a.needle);
+  pnh.param("assimilation/target", a.target, a.target);
+  pnh.param("assimilation/max_latency", a.max_latency, a.max_latency);
+  pnh.param("assimilation/max_future", a.max_future, a.max_future);
+  if (!(a.max_future >= 0)) throw InputError("", "~assimilation/max_future", "must be a time >= 0 [s]");
   return p;
 }
 

@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "needle_sim/command/command_guard.hpp"
+#include "node_assimilation.hpp"
 
 namespace needle_sim {
 
@@ -64,6 +65,7 @@ struct NodeParameters {
   double insert_speed = 0.005;          // [m/s] default speed of ~insert goals
   double target_error_period = 0.2;     // [s] goal-oriented error bound of the targets this often (0: off)
   double deadline_warn_fraction = 0.05;  // diagnostics WARN above this share of late steps / skipped ticks
+  AssimilationParameters assimilation;   // ~assimilation/*: measurements in, online estimates out
 };
 
 NodeParameters readParameters(const ros::NodeHandle& pnh);

@@ -12,6 +12,7 @@
 #include <limits>
 
 #include "conversions.hpp"
+#include "node_assimilation.hpp"
 #include "display_outputs.hpp"
 #include "insert_action.hpp"
 #include "needle_sim/core/background_priority.hpp"
@@ -44,6 +45,7 @@ bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Respo
     return true;
   }
   if (action_) action_->abort("the simulation was reset");
+  if (assimilation_) assimilation_->restart();  // a new session: its measurements start again
   ++predict_epoch_;  // a prediction of the state before is cancelled
   // The command guard's and the schedule's counters are kept: they count over the node's life.
   res.success = true;
@@ -73,14 +75,11 @@ bool SimulatorRos::superseded(long generation) const {
 
 PredictionBudget SimulatorRos::predictionBudget(long generation) {
   // The predictions' thread (its own spinner) gives way to every other thread of the node:
-  // the live loop never waits for a prediction. SCHED_IDLE: any other thread that wakes takes
-  // its core at once (at nice 19 a woken stepping thread could still wait out the
-  // prediction's slice); where the policy is refused, nice 19.
+  // the live loop never waits for a prediction (idleThisThread: SCHED_IDLE).
   static thread_local bool lowered = false;
   if (!lowered) {
     nameThisThread("ns_predict");
-    sched_param none{};
-    if (pthread_setschedparam(pthread_self(), SCHED_IDLE, &none) != 0) lowerThisThreadPriority(19);
+    idleThisThread();
     lowered = true;
   }
   PredictionBudget b;

@@ -21,6 +21,7 @@
 #include "display_outputs.hpp"
 #include "insert_action.hpp"
 #include "limits_reconfigure.hpp"
+#include "node_assimilation.hpp"
 #include "needle_sim/core/background_priority.hpp"
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/denormals.hpp"
@@ -98,6 +99,28 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
     if (!diag_stopped_) updater_->update();
   });
   subscribeCommands();
+  if (!P.assimilation.keys.empty()) {
+    // The refits follow the base poses the needle took unless it follows the scene's motion,
+    // at speeds up to the ceilings: what the live run took (within the limits of the time,
+    // reconfigured or not) is taken again, never slowed.
+    CommandLimits replay = guard().limits();
+    for (const CeiledLimit& c : kCeiledLimits) replay.*c.limit = P.ceilings.*c.ceiling;
+    replay.command_latency = 0;  // each pose is stamped when the base was there
+    assimilation_ = std::make_unique<NodeAssimilation>(
+        pnh_, P.assimilation, P.scene_file, P.overrides, scene_, P.command_source != "scene", replay,
+        *tf_buffer_, P.tissue_frame, P.allow_empty_frame,
+        [this](const ros::Time& t) {
+          std::lock_guard<std::mutex> lk(queue_mutex_);
+          return simSeconds(t);
+        },
+        [this](double t) {
+          std::lock_guard<std::mutex> lk(queue_mutex_);
+          return origin_.isZero() ? ros::Time::now() : origin_ + ros::Duration(t);
+        });
+    updater_->add("assimilation", assimilation_.get(), &NodeAssimilation::diagnose);
+    ROS_INFO("needle_sim: assimilating measurements into %zu key(s), an estimate every %g s", P.assimilation.keys.size(),
+             P.assimilation.every);
+  }
   reset_srv_ = pnh_.advertiseService("reset", &SimulatorRos::onReset, this);
   set_target_srv_ = pnh_.advertiseService("set_target", &SimulatorRos::onSetTarget, this);
   {
@@ -144,6 +167,7 @@ SimulatorRos::~SimulatorRos() {
     std::lock_guard<std::mutex> lk(diag_mutex_);
     diag_stopped_ = true;
   }
+  assimilation_.reset();  // its subscriptions and its thread (after the diagnostics that read it)
   diag_timer_.stop();
   predict_srv_.shutdown();
   steer_srv_.shutdown();

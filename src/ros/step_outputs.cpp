@@ -9,6 +9,7 @@
 #include <cstdio>
 
 #include "conversions.hpp"
+#include "node_assimilation.hpp"
 #include "display_outputs.hpp"
 #include "insert_action.hpp"
 #include "limits_reconfigure.hpp"
@@ -52,6 +53,7 @@ void SimulatorRos::publishStep(double ms) {
     f.send_target_point = sim_->numTargets() > 0 && target_pub_.getNumSubscribers() > 0;
     f.send_target_state = sim_->numTargets() > 0 && target_state_pub_.getNumSubscribers() > 0;
     if (action_) action_->update(obs_);
+    if (assimilation_) assimilation_->afterStep(*sim_, obs_);
   } else {
     f.obs.step = sim_->stepIndex();
     f.obs.time = sim_->time();

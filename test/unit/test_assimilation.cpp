@@ -6,14 +6,18 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Eigenvalues>
+#include <atomic>
+#include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <random>
+#include <thread>
 
 #include "needle_sim/calibration/force_assimilation.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
 
 using namespace needle_sim;
@@ -464,4 +468,123 @@ TEST(Assimilation, AMeasuredTargetsOffsetIsEstimatedAndItsPredictionCovered) {
   const AssimilationSample& later = a.samples()[200];
   ASSERT_TRUE(later.hasTarget(0));
   EXPECT_LT((later.target_measured[0] - later.target_predicted[0]).norm(), 5 * kTargetNoise);
+}
+
+// The node's way (node_assimilation.hpp): the record grows as the samples arrive (append) and
+// each estimate is made when it is due (update). At the batch's checkpoint times it is the
+// batch's estimate, bit for bit: the window, the warm starts and the fits are the same.
+TEST(Assimilation, StreamedAsTheNodeDoesItIsTheBatchEstimate) {
+#ifdef NEEDLE_SIM_SANITIZED
+  GTEST_SKIP() << "calibrate's path runs under the sanitizers in test_calibration";
+#endif
+  const ForceRecord data = patient(kNoise, 3);
+  AssimilationSettings s = settings(kNoise);
+  s.fit.parameters.resize(1);  // the cutting force
+  s.every = 0.7;
+  ForceAssimilation batch = runTo(s, data, 2.3);
+  batch.finish(2.3);
+  const auto rowsIn = [&](double from, double to) {
+    ForceRecord r;
+    for (size_t i = 0; i < data.t.size(); ++i)
+      if (data.t[i] > from + 1e-12 && data.t[i] <= to + 1e-12) {
+        r.t.push_back(data.t[i]);
+        r.force.push_back(data.force[i]);
+      }
+    return r;
+  };
+  std::vector<double> due;
+  for (double t = data.t.front() + s.every; t <= data.t.back() + 1e-12; t += s.every) due.push_back(t);
+  due.push_back(2.3);
+  ForceAssimilation streamed(s, rowsIn(-1, due[0]));
+  streamed.update(due[0]);
+  for (size_t k = 1; k < due.size(); ++k) {
+    streamed.append(rowsIn(due[k - 1], due[k]));
+    streamed.update(due[k]);
+  }
+  ASSERT_EQ(streamed.checkpoints().size(), batch.checkpoints().size());
+  ASSERT_GE(batch.checkpoints().size(), 4u);
+  for (size_t k = 0; k < batch.checkpoints().size(); ++k) {
+    const auto &b = batch.checkpoints()[k], &x = streamed.checkpoints()[k];
+    EXPECT_EQ(x.t, b.t);
+    EXPECT_EQ(x.samples, b.samples);
+    EXPECT_EQ(x.values[0], b.values[0]) << "checkpoint " << k;
+    EXPECT_EQ(x.stds[0], b.stds[0]) << "checkpoint " << k;
+    EXPECT_EQ(x.innovation_rms, b.innovation_rms) << "checkpoint " << k;
+  }
+  EXPECT_NEAR(streamed.values()[0], 0.03, 0.1 * 0.03);
+  // Appended rows must come after the data's end.
+  EXPECT_THROW(streamed.append(rowsIn(-1, 0.1)), InputError);
+}
+
+// The node's refits of a commanded session replay the base poses its needle took at every
+// step (a command received at the step's start, stamped at its end), through a command
+// pipeline with the limits raised to their ceilings and no latency: that is the run itself. Checked on the
+// phantom's own motion: the replay's holder force is the scene's at every step.
+TEST(Assimilation, ReplayedBasePosesAreTheRunItself) {
+  std::vector<std::string> sets = kFixed;
+  const SimulatedForce own = simulateHolderForce(kPhantom, sets, 0, 1e9);
+  ASSERT_FALSE(own.failed);
+  Simulation sim(loadScene(kPhantom, sets));
+  std::vector<RecordedCommand> commands;
+  Observables o;
+  for (long k = 0; k < sim.scene().numSteps(); ++k) {
+    const double start = sim.time();
+    sim.step();
+    observe(sim, o);
+    RecordedCommand c;
+    c.received = start;
+    c.command.stamp = sim.time();  // reached then (no latency below)
+    c.command.position = o.needles[0].base;
+    c.command.orientation = o.needles[0].base_frame;
+    commands.push_back(c);
+  }
+  CommandLimits limits;
+  const LimitCeilings ceilings;
+  for (const CeiledLimit& c : kCeiledLimits) limits.*c.limit = ceilings.*c.ceiling;
+  limits.command_latency = 0;
+  const SimulatedForce replayed = simulateHolderForce(kPhantom, sets, 0, own.t.back(), &commands, false, limits);
+  ASSERT_FALSE(replayed.failed) << replayed.failure;
+  ASSERT_EQ(replayed.t.size(), own.t.size());
+  double peak = 0, diff = 0, tip = 0;
+  for (size_t i = 0; i < own.t.size(); ++i) {
+    peak = std::max(peak, std::abs(own.force[i]));
+    diff = std::max(diff, std::abs(replayed.force[i] - own.force[i]));
+    tip = std::max(tip, (replayed.tip[i] - own.tip[i]).norm());
+  }
+  std::printf("replayed base poses: holder force within %.3g N of the scene's (peak %.3g N), tip within %.3g m\n", diff,
+              peak, tip);
+  EXPECT_GT(peak, 0.015);
+  EXPECT_LT(diff, 1e-6 * peak);
+  EXPECT_LT(tip, 1e-9);
+}
+
+// The node's end (or ~reset) must not wait for a refit: a cancel set from another thread
+// stops every run at its next step and calibrate() throws CalibrationCancelled, at once
+// rather than after the fit's seconds.
+TEST(Assimilation, ACancelledFitStopsAtItsNextStep) {
+  const ForceRecord data = patient(kNoise, 5);
+  std::atomic<bool> cancel{false};
+  CalibrationSettings c = settings(kNoise).fit;
+  c.cancel = &cancel;
+  c.threads = 1;
+  const auto t0 = std::chrono::steady_clock::now();
+  std::thread stopper([&] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    cancel = true;
+  });
+  bool cancelled = false;
+  std::string other;
+  try {
+    (void)calibrate(c, data);
+  } catch (const CalibrationCancelled&) {
+    cancelled = true;
+  } catch (const std::exception& e) {
+    other = e.what();
+  }
+  stopper.join();
+  EXPECT_EQ(other, "") << "cancelled, calibrate must throw CalibrationCancelled, whenever it is";
+  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  std::printf("cancelled after 0.3 s: calibrate returned after %.3f s\n", wall);
+  EXPECT_TRUE(cancelled);
+  EXPECT_LT(wall, 1.5);  // the whole fit: ~20 runs of about 0.4 s here
 }

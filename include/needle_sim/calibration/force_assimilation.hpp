@@ -100,6 +100,17 @@ class ForceAssimilation {
   // since the last one.
   void finish(double t);
 
+  // Streaming (the node, doc/ros_api.md "Assimilation"): the data grow as they arrive.
+  // append(): rows measured after the data's last time, in increasing time, with the
+  // channels the data were made with (a channel they lack is NaN). setCommands(): the
+  // commands the session followed so far (the base poses the node's needle took), replacing
+  // the settings'; the next checkpoint's innovations come from the last estimate run over
+  // them. update(): a checkpoint at t (the data's end at most) if samples arrived since the
+  // last one, whatever the spacing `every`.
+  void append(const ForceRecord& rows);
+  void setCommands(std::vector<RecordedCommand> commands);
+  void update(double t);
+
   const std::vector<CalibrationParameter>& parameters() const { return params_; }
   const std::vector<AssimilationCheckpoint>& checkpoints() const { return checkpoints_; }
   const std::vector<AssimilationSample>& samples() const { return samples_; }

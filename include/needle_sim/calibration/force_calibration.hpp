@@ -24,7 +24,9 @@
 //
 // Every evaluation builds its simulation from the scene file again (the same initial state;
 // runs are deterministic). An evaluation that fails numerically is a penalised point.
+#include <atomic>
 #include <functional>
+#include <stdexcept>
 #include <limits>
 #include <string>
 #include <vector>
@@ -77,6 +79,12 @@ struct CalibrationSettings {
   // A recorded session's commands (a bag): they drive the needle through the command guard
   // instead of the scene's motion. Empty: the scene's motion.
   std::vector<RecordedCommand> commands;
+  // The limits the commands are followed with (the node's ~max_speed etc.; the defaults are
+  // the node's defaults).
+  CommandLimits limits;
+  // Set by another thread: every run stops at its next step (failed, "cancelled") and
+  // calibrate() throws CalibrationCancelled (the node's estimator at shutdown or ~reset).
+  const std::atomic<bool>* cancel = nullptr;
 };
 
 // The simulated axial force on the holder (observe()'s NeedleObservation::axial_force:
@@ -141,12 +149,18 @@ MeasurementWeights measurementWeights(const CalibrationSettings& s, const ForceR
 // is not a real number (e.g. an integer or a string), a start outside its bounds.
 std::vector<CalibrationParameter> resolveParameters(const CalibrationSettings& s);
 
+struct CalibrationCancelled : std::runtime_error {
+  CalibrationCancelled() : std::runtime_error("cancelled") {}
+};
+
 // One run of the scene with `sets` (later entries win) up to `until` seconds (or its end);
-// with commands, they drive the needle (from its rest pose) for `until` seconds; with
-// target_errors, the targets' discretisation error bounds at the last step too.
+// with commands, they drive the needle (from its rest pose) for `until` seconds, through a
+// command pipeline with `limits`; with target_errors, the targets' discretisation error bounds
+// at the last step too; cancel set: the run stops at its next step (failed, "cancelled").
 SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<std::string>& sets, int needle,
                                    double until, const std::vector<RecordedCommand>* commands = nullptr,
-                                   bool target_errors = false);
+                                   bool target_errors = false, const CommandLimits& limits = CommandLimits{},
+                                   const std::atomic<bool>* cancel = nullptr);
 
 // progress(evaluation, rms [N], values) after every evaluation.
 CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& data,

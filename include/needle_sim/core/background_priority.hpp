@@ -6,6 +6,7 @@
 // at nice +10 (Linux: a thread's own nice value), so the stepping thread preempts it; it still
 // gets a core whenever one is free.
 #include <pthread.h>
+#include <sched.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -20,6 +21,15 @@ inline void nameThisThread(const char* name) { (void)pthread_setname_np(pthread_
 // (the node's predictions and plans).
 inline void lowerThisThreadPriority(int nice = 10) {
   (void)setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), nice);
+}
+
+// For work nothing waits for (the node's predictions, plans and online estimates): SCHED_IDLE,
+// so that any other thread that wakes takes its core at once (at nice 19 a woken stepping
+// thread could still wait out its slice); where the policy is refused, nice 19. Threads it
+// starts inherit it.
+inline void idleThisThread() {
+  sched_param none{};
+  if (pthread_setschedparam(pthread_self(), SCHED_IDLE, &none) != 0) lowerThisThreadPriority(19);
 }
 
 }  // namespace needle_sim

@@ -55,6 +55,7 @@ class OutputQueue;
 class DisplayOutputs;
 class InsertAction;
 class LimitsReconfigure;
+class NodeAssimilation;
 struct Rigid;
 struct StepFrame;
 
@@ -131,6 +132,8 @@ class SimulatorRos {
   std::unique_ptr<DisplayOutputs> display_;
   std::unique_ptr<InsertAction> action_;
   std::unique_ptr<LimitsReconfigure> reconfigure_;
+  // Measurements in, the online estimate out (node_assimilation.hpp); null without ~assimilation/keys.
+  std::unique_ptr<NodeAssimilation> assimilation_;
 
   std::mutex sim_mutex_;  // guards sim_ and everything the stepping thread changes
   std::unique_ptr<Simulation> sim_;

@@ -84,7 +84,8 @@ std::vector<double> ForceAssimilation::values() const {
 SimulatedForce ForceAssimilation::run(const std::vector<double>& v, double until, bool target_errors) const {
   std::vector<std::string> sets = s_.fit.sets;
   for (const auto& o : parameterSets(params_, v)) sets.push_back(o);
-  return simulateHolderForce(s_.fit.scene, sets, s_.fit.needle, until, &s_.fit.commands, target_errors);
+  return simulateHolderForce(s_.fit.scene, sets, s_.fit.needle, until, &s_.fit.commands, target_errors, s_.fit.limits,
+                             s_.fit.cancel);
 }
 
 int ForceAssimilation::advance(double t) {
@@ -105,9 +106,50 @@ void ForceAssimilation::finish(double t) {
   next_ = kInf;
 }
 
+void ForceAssimilation::append(const ForceRecord& rows) {
+  for (size_t i = 0; i < rows.t.size(); ++i) {
+    const double t = rows.t[i];
+    if (!(t > data_.t.back())) throw InputError("", "t", "an appended sample is not after the data's last time");
+    data_.t.push_back(t);
+    data_.force.push_back(i < rows.force.size() ? rows.force[i] : NAN);
+    AssimilationSample x;
+    x.t = t;
+    x.measured = data_.force.back();
+    if (!data_.tip.empty()) {
+      data_.tip.push_back(i < rows.tip.size() ? rows.tip[i] : Vec3::Constant(NAN));
+      x.tip_measured = data_.tip.back();
+    }
+    for (size_t j = 0; j < data_.targets.size(); ++j) {
+      Vec3 q = Vec3::Constant(NAN);
+      if (!data_.targets[j].empty()) {
+        if (j < rows.targets.size() && i < rows.targets[j].size()) q = rows.targets[j][i];
+        data_.targets[j].push_back(q);
+      }
+      x.target_measured.push_back(q);
+      x.target_predicted.push_back(Vec3::Zero());
+      x.target_rejected.push_back(0);
+    }
+    samples_.push_back(x);
+  }
+  w_ = measurementWeights(s_.fit, data_);  // a channel may have its first sample now
+}
+
+void ForceAssimilation::setCommands(std::vector<RecordedCommand> commands) { s_.fit.commands = std::move(commands); }
+
+void ForceAssimilation::update(double t) {
+  const double until = std::min(t, data_.t.back());
+  if (fitted_until_ + 1e-12 < until) checkpoint(until);
+}
+
 void ForceAssimilation::checkpoint(double t) {
   const auto t0 = std::chrono::steady_clock::now();
   const size_t n = params_.size();
+  // Streaming: the last estimate's run stopped where the commands did then; the new samples
+  // are predicted by it run over the commands as they are now.
+  if (!s_.fit.commands.empty() && !prediction_.t.empty() && prediction_.t.back() + 1e-9 < t) {
+    prediction_ = run(values(), end(), false);
+    if (prediction_.failed) throw NumericalError(0, "the simulation fails at the estimate: " + prediction_.failure);
+  }
   // The samples that arrived since the last checkpoint, predicted before they are used.
   int fresh = 0, fresh_values = 0;
   double innovation2 = 0;

@@ -178,14 +178,19 @@ MeasurementWeights measurementWeights(const CalibrationSettings& s, const ForceR
 }
 
 SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<std::string>& sets, int needle,
-                                   double until, const std::vector<RecordedCommand>* commands, bool target_errors) {
+                                   double until, const std::vector<RecordedCommand>* commands, bool target_errors,
+                                   const CommandLimits& limits, const std::atomic<bool>* cancel) {
   SimulatedForce r;
   Scene sc = loadScene(scene, sets);
   if (needle < 0 || needle >= static_cast<int>(sc.needles.size()))
     throw InputError(scene, "needle", "the scene has no needle " + std::to_string(needle));
   const bool replaying = commands && !commands->empty();
   if (replaying) {
+    // The commands drive the needle, and any other needle they command (as in the node,
+    // whose commanded needles have no motion of their own).
     sc.needles[needle].motion.clear();
+    for (const RecordedCommand& c : *commands)
+      if (c.needle >= 0 && c.needle < static_cast<int>(sc.needles.size())) sc.needles[c.needle].motion.clear();
     sc.duration = std::max(until, sc.dt);
   }
   try {
@@ -193,11 +198,16 @@ SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<s
     so.target_errors = target_errors;
     Simulation sim(sc, so);
     std::unique_ptr<CommandReplay> replay;
-    if (replaying) replay = std::make_unique<CommandReplay>(sim, CommandLimits{}, *commands);
+    if (replaying) replay = std::make_unique<CommandReplay>(sim, limits, *commands);
     const BasePose p0 = sim.needle(needle).trajectory().pose(0);
     const long steps = std::min(sc.numSteps(), static_cast<long>(std::ceil(until / sc.dt - 1e-9)) + 1);
     Observables o;
     for (long k = 0; k < steps; ++k) {
+      if (cancel && cancel->load(std::memory_order_relaxed)) {
+        r.failed = true;
+        r.failure = "cancelled";
+        return r;
+      }
       if (replay) replay->beforeStep(sim);
       sim.step();
       observe(sim, o);
@@ -225,6 +235,7 @@ namespace {
 
 struct Problem {
   const CalibrationSettings* s;
+  nlopt_opt opt = nullptr;  // (to stop it when cancelled)
   const ForceRecord* data;
   MeasurementWeights w;
   std::vector<CalibrationParameter> p;
@@ -244,7 +255,7 @@ struct Problem {
     std::vector<std::string> sets = s->sets;
     for (const auto& o : parameterSets(p, v)) sets.push_back(o);
     try {
-      return simulateHolderForce(s->scene, sets, s->needle, until, &s->commands);
+      return simulateHolderForce(s->scene, sets, s->needle, until, &s->commands, false, s->limits, s->cancel);
     } catch (const InputError& e) {  // a combination the scene rejects: a penalised point
       SimulatedForce f;
       f.failed = true;
@@ -308,6 +319,10 @@ double objective(unsigned n, const double* x, double* grad, void* data) {
   (void)n;
   (void)grad;  // BOBYQA is derivative-free
   Problem& pr = *static_cast<Problem*>(data);
+  if (pr.s->cancel && pr.s->cancel->load(std::memory_order_relaxed)) {
+    nlopt_force_stop(pr.opt);  // (no exception through the C library)
+    return pr.penalty;
+  }
   const std::vector<double> v = pr.values(x);
   const SimulatedForce f = pr.run(v);
   ++pr.evaluations;
@@ -366,7 +381,10 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
   std::vector<double> start(n);
   for (size_t i = 0; i < n; ++i) start[i] = pr.p[i].start;
   r.start_run = pr.run(start);
-  if (r.start_run.failed) throw NumericalError(0, "the simulation fails at the start values: " + r.start_run.failure);
+  if (r.start_run.failed) {
+    if (s.cancel && s.cancel->load()) throw CalibrationCancelled();
+    throw NumericalError(0, "the simulation fails at the start values: " + r.start_run.failure);
+  }
   const VecX r0 = pr.residuals(r.start_run);
   r.residuals = pr.samples = static_cast<int>(r0.size());
   if (r.residuals < static_cast<int>(n) + 1)
@@ -397,9 +415,11 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
   nlopt_set_xtol_abs(opt, xtol_abs.data());
   nlopt_set_maxeval(opt, s.max_evaluations);
   nlopt_set_min_objective(opt, objective, &pr);
+  pr.opt = opt;
   double cost = 0;
   const nlopt_result res = nlopt_optimize(opt, x.data(), &cost);
   nlopt_destroy(opt);
+  if (s.cancel && s.cancel->load()) throw CalibrationCancelled();
   r.stop_reason = stopReason(res);
   if (res < 0 && res != NLOPT_ROUNDOFF_LIMITED && res != NLOPT_FORCED_STOP)
     throw NumericalError(0, std::string("the optimiser failed: ") + r.stop_reason);
@@ -499,6 +519,7 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
     r.identifiable.push_back(std::isfinite(se) && se < std::abs(r.values[i]));
   }
   r.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  if (s.cancel && s.cancel->load()) throw CalibrationCancelled();  // (a Jacobian of stopped runs)
   return r;
 }
 

@@ -382,25 +382,31 @@ def node_overhead():
                                              "scripts/node_overhead.py --seconds 4"]
 
 
+def _deadlines_beside_launch(launch_args, client_args, timeout=180):
+    """scripts/node_deadlines.py's output against a `roslaunch needle_sim sim.launch` of its own
+    (4 s to start: roscore, the node, its scene), and the figures of its first line."""
+    launch = subprocess.Popen(["roslaunch", "needle_sim", "sim.launch"] + launch_args, cwd=root(),
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        time.sleep(4.0)
+        text = run(["/usr/bin/python3", "scripts/node_deadlines.py", "--rate", "500"] + client_args, timeout=timeout)
+    finally:
+        os.killpg(launch.pid, signal.SIGINT)
+        launch.wait(timeout=60)
+    m = re.search(r"(\d+) steps over .* (\d+) late \(([0-9.]+) %\), (\d+) skipped ticks .* largest step seen "
+                  r"([0-9.]+) ms", text)
+    if not m:
+        raise RuntimeError("node_deadlines.py printed no figures:\n" + text)
+    return text, m
+
+
 def node_prediction():
     """The node's live loop with and without a long ~predict beside it: the adaptive phantom,
     500 Hz poses, a 99,000-step prediction 0.2 s in (stopped by ~predict_max_wall, 5 s)."""
     rows = []
     scene = os.path.join(root(), "config/scenes/phantom_insertion_adaptive.yaml")
     for label, extra in (("none", []), ("99,000 steps at 1 ms", ["--predict-steps", "99000"])):
-        launch = subprocess.Popen(["roslaunch", "needle_sim", "sim.launch", "scene:=" + scene, "command_source:=topic"],
-                                  cwd=root(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                  start_new_session=True)
-        try:
-            time.sleep(4.0)  # roscore, the node, its scene
-            text = run(["/usr/bin/python3", "scripts/node_deadlines.py", "--rate", "500"] + extra, timeout=180)
-        finally:
-            os.killpg(launch.pid, signal.SIGINT)
-            launch.wait(timeout=60)
-        m = re.search(r"(\d+) steps over .* (\d+) late \(([0-9.]+) %\), (\d+) skipped ticks .* largest step seen "
-                      r"([0-9.]+) ms", text)
-        if not m:
-            raise RuntimeError("node_deadlines.py printed no figures:\n" + text)
+        text, m = _deadlines_beside_launch(["scene:=" + scene, "command_source:=topic"], extra)
         p = re.search(r"prediction of \d+ steps at [0-9.]+ s: ([0-9.]+) s wall, (.*); meanwhile (\d+) live steps, "
                       r"(\d+) late \(([0-9.]+) %\), (\d+) skipped", text)
         pred = ("%s s, %s; %s late of %s (%s %%), %s skipped" % (
@@ -413,6 +419,32 @@ def node_prediction():
     return head + "\n".join(rows) + "\n", [
         "roslaunch needle_sim sim.launch scene:=$PWD/config/scenes/phantom_insertion_adaptive.yaml command_source:=topic &",
         "scripts/node_deadlines.py --rate 500 [--predict-steps 99000]   # 4 s later; a launch each"]
+
+
+def node_assimilation():
+    """The node's live loop with and without the online estimate beside it: the phantom
+    (8x4x4, 1 ms), 500 Hz poses, every subscribed, the node's own wrench sent back every 10 ms
+    with 0.5 mN of noise as a measured one; with ~assimilation/keys the cutting force refitted
+    every 0.5 s (its estimate from the node's own force must be the scene's 20 mN)."""
+    rows = []
+    scene = os.path.join(root(), "config/scenes/phantom_insertion_8x4x4.yaml")
+    for label, extra in (("off", []), ("on: interaction.cutting_force", ["assimilate:=interaction.cutting_force"])):
+        text, m = _deadlines_beside_launch(
+            ["scene:=" + scene, "command_source:=topic"] + extra,
+            ["--subscribe-all", "--echo-wrench", "0.0005", "--echo-wait", "180" if extra else "0"], timeout=400)
+        e = re.search(r"(\d+) estimates from the echoed wrench .* the last at t = ([0-9.]+) s \(([0-9.]+) s of wall time, "
+                      r"(\d+) samples, (\w+)\): (.*)", text)
+        est = ("%s estimates; the last (t = %s s, %s samples, %s s of wall time, %s): %s" % (
+            e.group(1), e.group(2), e.group(4), e.group(3), e.group(5), e.group(6)) if e else "–")
+        if extra and not e:
+            raise RuntimeError("no estimate from the node:\n" + text)
+        rows.append("| %s | %s | %s (%s %%) | %s | %s | %s |" % (label, m.group(1), m.group(2), m.group(3), m.group(4),
+                                                                m.group(5), est))
+    head = ("| online estimate | steps | late steps | skipped ticks | largest step seen ms | its estimate |\n"
+            "|---|---|---|---|---|---|\n")
+    return head + "\n".join(rows) + "\n", [
+        "roslaunch needle_sim sim.launch command_source:=topic [assimilate:=interaction.cutting_force] &",
+        "scripts/node_deadlines.py --rate 500 --subscribe-all --echo-wrench 0.0005   # 4 s later; a launch each"]
 
 
 def stability_sweep():
@@ -486,6 +518,8 @@ BENCHMARKS = [
     ("node_overhead", "the ROS node's output cost against its step (launches the node)", 1, False, node_overhead),
     ("node_prediction", "the node's loop with a long ~predict beside it (launches the node)", 1, False,
      node_prediction),
+    ("node_assimilation", "the node's loop with and without the online estimate beside it (launches the node)", 5,
+     False, node_assimilation),
     ("soak", "a back-and-forth insertion for 22,500 steps: memory and step time per cycle",
      1, False, printed_table(["T", "soak", "config/scenes/phantom_insertion_adaptive.yaml", "--steps", "22500"])),
     ("stability_sweep", "the stability sweep: one parameter at a time across its range", 2, False, stability_sweep),

@@ -20,6 +20,11 @@ insertion, from a thread of its own (as a planner beside the robot's loop would)
 line reports it: its wall time, whether the node stopped it (~predict_max_wall), and the late
 steps and skipped ticks of the live loop while it ran.
 
+With --echo-wrench NOISE, the client also acts as a force sensor: every --echo-every-th
+~<needle>/wrench is sent back to ~<needle>/measured_wrench with Gaussian noise of NOISE [N]
+(seed 1), stamped as it came; for a node with ~assimilation/keys (and wrench_noise), a further
+line reports the last ~estimate: from its own force, the node must find the scene's values.
+
 Prints one line: steps, late steps and skipped ticks (counts and % of the steps), the
 largest step, the load average; exit status 0 (a measurement, not a test).
 """
@@ -29,8 +34,10 @@ import os
 import threading
 
 import rospy
-from geometry_msgs.msg import PoseStamped
-from needle_sim.msg import NeedleWaypoint, SimStatus
+import random
+
+from geometry_msgs.msg import PoseStamped, WrenchStamped
+from needle_sim.msg import NeedleWaypoint, ParameterEstimate, SimStatus
 from needle_sim.srv import PredictInsertion, PredictInsertionRequest
 
 
@@ -53,6 +60,10 @@ def main():
     ap.add_argument("--subscribe-all", action="store_true",
                     help="subscribe to every topic the node publishes, /tf and /diagnostics (undecoded), as rviz and a "
                          "monitor would: the node builds the outputs only for subscribed topics")
+    ap.add_argument("--echo-wrench", type=float, default=0.0, metavar="NOISE",
+                    help="send the node's wrench back as a measured one with this noise [N] (0: not)")
+    ap.add_argument("--echo-every", type=int, default=10, help="every this many wrench messages (default 10)")
+    ap.add_argument("--echo-wait", type=float, default=120.0, help="seconds to wait for the estimate of the whole insertion")
     args = ap.parse_args(rospy.myargv()[1:])
     rospy.init_node("node_deadlines", anonymous=True)
     lock = threading.Lock()
@@ -64,6 +75,22 @@ def main():
 
     sub = rospy.Subscriber(args.node + "/status", SimStatus, on_status, queue_size=1)
     monitors = []
+    estimates = []
+    # (Before the undecoded subscriptions: rospy keeps a topic's first type.)
+    if args.echo_wrench > 0:
+        rng = random.Random(1)
+        echo = rospy.Publisher("/%s/%s/measured_wrench" % (args.node, args.needle), WrenchStamped, queue_size=100)
+        count = [0]
+
+        def on_wrench(m):
+            count[0] += 1
+            if count[0] % args.echo_every == 0:
+                m.wrench.force.x += rng.gauss(0.0, args.echo_wrench)
+                echo.publish(m)
+
+        monitors.append(rospy.Subscriber("/%s/%s/wrench" % (args.node, args.needle), WrenchStamped, on_wrench,
+                                         queue_size=100))
+        monitors.append(rospy.Subscriber(args.node + "/estimate", ParameterEstimate, lambda m: estimates.append(m)))
     if args.subscribe_all:
         prefix = "/" + args.node.strip("/") + "/"
         for name, _ in rospy.get_published_topics():
@@ -160,6 +187,21 @@ def main():
           "(%.2f %%), largest step seen %.2f ms, %d commands rejected, load average %.2f %.2f %.2f" % (
               steps, total, args.rate, late, 100.0 * late / max(steps, 1), skipped, 100.0 * skipped / max(steps, 1),
               step_max, m1.rejected_commands - m0.rejected_commands, load[0], load[1], load[2]))
+    if args.echo_wrench > 0:
+        # The first estimate that used the whole insertion (the estimator lags the loop by its
+        # refits' wall time), at most --echo-wait seconds.
+        end = rospy.get_time() + args.echo_wait
+        while not rospy.is_shutdown() and rospy.get_time() < end and not (estimates and estimates[-1].t >= m1.sim_time - 0.2):
+            rospy.sleep(0.1)
+        if not estimates:
+            print("node_deadlines: no ~estimate (has the node ~assimilation/keys and ~assimilation/wrench_noise?)")
+        else:
+            e = estimates[-1]
+            print("node_deadlines: %d estimates from the echoed wrench (noise %g N); the last at t = %.3f s (%.2f s of "
+                  "wall time, %d samples, %s): %s" % (
+                      len(estimates), args.echo_wrench, e.t, e.wall_s, e.samples,
+                      "consistent" if e.consistent else "INCONSISTENT",
+                      ", ".join("%s = %.6g +- %.2g" % (k, v, s) for k, v, s in zip(e.keys, e.values, e.std))))
     if args.predict_steps > 0:
         if "response" not in predicted:
             print("node_deadlines: the prediction had not returned when the insertion ended")
