@@ -167,7 +167,6 @@ SimulatorRos::~SimulatorRos() {
     std::lock_guard<std::mutex> lk(diag_mutex_);
     diag_stopped_ = true;
   }
-  assimilation_.reset();  // its subscriptions and its thread (after the diagnostics that read it)
   diag_timer_.stop();
   predict_srv_.shutdown();
   steer_srv_.shutdown();
@@ -182,6 +181,9 @@ SimulatorRos::~SimulatorRos() {
   }
   wake_.notify_all();
   if (thread_.joinable()) thread_.join();
+  // Its subscriptions and its thread, once the stepping thread (which feeds it every step) and
+  // the diagnostics (which read it) are done (found by ThreadSanitizer: the node-threads test).
+  assimilation_.reset();
   {
     std::lock_guard<std::mutex> lk(error_mutex_);
     error_stop_ = true;

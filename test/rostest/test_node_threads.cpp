@@ -89,6 +89,11 @@ TEST(NodeThreads, EveryThreadAtOnceThenTheNodeDestroyedWhileCommandsArrive) {
   // The predictions' thread is SCHED_IDLE: under a sanitizer, with the stepping thread behind,
   // a short prediction may wait for a core (the budget is for a prediction's own length).
   pnh.setParam("predict_max_wall", 60.0);
+  // The online estimate's thread too (node_assimilation.hpp): measured wrenches arrive with the
+  // poses, its refits run beside the steps and are cancelled by the reset and the node's end.
+  pnh.setParam("assimilation/keys", std::string("interaction.cutting_force"));
+  pnh.setParam("assimilation/wrench_noise", 0.0005);
+  pnh.setParam("assimilation/every", 0.2);
   auto sim = std::make_unique<needle_sim::SimulatorRos>(nh, pnh);
   ros::AsyncSpinner spinner(2);  // needle_sim_node's MultiThreadedSpinner(2)
   spinner.start();
@@ -114,6 +119,7 @@ TEST(NodeThreads, EveryThreadAtOnceThenTheNodeDestroyedWhileCommandsArrive) {
 
   // Base poses at 500 Hz: in along the axis at 10 mm/s, from the start again after a reset.
   ros::Publisher poses = pnh.advertise<geometry_msgs::PoseStamped>("needle/command_pose", 100);
+  ros::Publisher measured = pnh.advertise<geometry_msgs::WrenchStamped>("needle/measured_wrench", 100);
   std::atomic<bool> publishing{true};
   std::atomic<double> pose_t0{ros::WallTime::now().toSec()};
   std::atomic<int> sent{0};
@@ -122,6 +128,13 @@ TEST(NodeThreads, EveryThreadAtOnceThenTheNodeDestroyedWhileCommandsArrive) {
     while (publishing) {
       const double t = ros::WallTime::now().toSec() - pose_t0;
       poses.publish(needle_sim_test::basePose(kBaseX + 0.010 * std::min(t, 3.0), kY, kZ));
+      if (sent % 5 == 0) {  // a force sensor at 100 Hz
+        geometry_msgs::WrenchStamped w;
+        w.header.stamp = ros::Time::now();
+        w.header.frame_id = "needle_base";
+        w.wrench.force.x = -0.02;
+        measured.publish(w);
+      }
       ++sent;
       rate.sleep();
     }
