@@ -152,16 +152,19 @@ bool NodeAssimilation::admit(const std_msgs::Header& h, const char* topic, doubl
 void NodeAssimilation::queue(const Sample& s, const char* topic) {
   Rule rule = kRules;
   std::string why;
+  // Ahead of the node's clock is the future (a sensor's clock off); ahead of the simulation
+  // only, when it runs behind, the sample waits for it.
+  const double clock = sim_seconds_(ros::Time::now());
   {
     std::lock_guard<std::mutex> lk(mutex_);
     if (s.t <= committed_) {
       rule = Stale;
       why = "stamped at t = " + std::to_string(s.t) + " s, at or before the estimate's window closed (t = " +
             std::to_string(committed_) + " s; ~assimilation/max_latency " + std::to_string(p_.max_latency) + " s)";
-    } else if (s.t > sim_time_ + p_.max_future) {
+    } else if (s.t > std::max(clock, sim_time_) + p_.max_future) {
       rule = Future;
       why = "stamped at t = " + std::to_string(s.t) + " s, more than ~assimilation/max_future = " +
-            std::to_string(p_.max_future) + " s ahead of the simulation (t = " + std::to_string(sim_time_) + " s)";
+            std::to_string(p_.max_future) + " s ahead of the node's clock (t = " + std::to_string(clock) + " s)";
     } else {
       pending_.push_back(s);
     }

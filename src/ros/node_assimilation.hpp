@@ -49,7 +49,7 @@ struct AssimilationParameters {
   std::string target;             // the target ~target/measured measures ("": the first)
   // [s] how late a sample may arrive: an estimate uses the samples up to the simulation's
   // time less this (a later one is refused, stale); a stamp more than max_future ahead of the
-  // simulation is refused too.
+  // node's clock is refused too (one ahead of a simulation running behind waits for it).
   double max_latency = 0.1;
   double max_future = 0.1;
 };
