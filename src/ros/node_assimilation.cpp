@@ -81,6 +81,19 @@ NodeAssimilation::NodeAssimilation(ros::NodeHandle pnh, const AssimilationParame
     throw InputError("", "~assimilation/keys", e.what());
   }
   units_ = force ? "N" : "m";
+  if (!(p.adopt_ramp >= 0) || !std::isfinite(p.adopt_ramp))
+    throw InputError("", "~assimilation/adopt_ramp", "must be a time >= 0 [s]");
+  in_use_.assign(p.keys.size(), kNaN);
+  if (p.adopt) {
+    adoption_ = std::make_unique<ParameterAdoption>(p.keys, p.adopt_ramp);
+    std::string kept;
+    for (size_t i = 0; i < p.keys.size(); ++i)
+      if (!adoption_->adoptable(static_cast<int>(i))) kept += (kept.empty() ? "" : ", ") + p.keys[i];
+    if (!kept.empty())
+      ROS_WARN("needle_sim: assimilation: %s estimated, not adopted: the live simulation takes only the interaction's "
+               "cutting_force, puncture_force, friction and grip_pressure during a run",
+               kept.c_str());
+  }
 
   estimate_pub_ = pnh.advertise<needle_sim::ParameterEstimate>("estimate", 10, true);
   const std::string& name = scene.needles[needle_].name;
@@ -201,10 +214,29 @@ void NodeAssimilation::onPoint(int channel, const char* topic, const geometry_ms
   queue(s, topic);
 }
 
-void NodeAssimilation::afterStep(const Simulation& sim, const Observables& obs) {
+void NodeAssimilation::afterStep(Simulation& sim, const Observables& obs) {
   bool due = false;
   {
     std::lock_guard<std::mutex> lk(mutex_);
+    if (adoption_) {
+      // The stepping thread, between steps: the value the ramp has reached is what the next
+      // step uses.
+      if (adopt_clear_) adoption_ = std::make_unique<ParameterAdoption>(p_.keys, p_.adopt_ramp);
+      adopt_clear_ = false;
+      try {
+        if (adopt_new_) {
+          adoption_->target(sim, to_adopt_);
+          ++adopted_;
+        }
+        adopt_new_ = false;
+        if (adoption_->ramping()) adoption_->apply(sim);
+      } catch (const InputError& e) {  // a value out of the key's range: the fit's bounds should prevent it
+        adoption_ = std::make_unique<ParameterAdoption>(p_.keys, p_.adopt_ramp);
+        adopt_failure_ = e.what();
+        ROS_ERROR_THROTTLE(10.0, "needle_sim: assimilation: the estimate was not adopted: %s", e.what());
+      }
+      for (size_t i = 0; i < p_.keys.size(); ++i) in_use_[i] = sim.valueInUse(p_.keys[i]);
+    }
     if (replay_)
       for (int i = 0; i < static_cast<int>(obs.needles.size()); ++i) {
         // The pose the base took in this step, as a command received at the step's start and
@@ -231,6 +263,8 @@ void NodeAssimilation::restart() {
     cancel_ = true;  // the refit under way is of the old session
     pending_.clear();
     commands_.clear();
+    adopt_new_ = false;
+    adopt_clear_ = true;  // the new session starts from the scene's values
     committed_ = -std::numeric_limits<double>::infinity();
     sim_time_ = 0;
     next_due_ = p_.every;
@@ -339,6 +373,13 @@ void NodeAssimilation::worker() {
         last_values_ = k.values;
         last_stds_ = k.stds;
         outliers_ = a->outliers();
+        if (p_.adopt && k.consistent) {
+          // A key the data do not determine yet (infinite std) keeps its value in use.
+          to_adopt_ = k.values;
+          for (size_t i = 0; i < to_adopt_.size(); ++i)
+            if (!(i < k.stds.size() && std::isfinite(k.stds[i]))) to_adopt_[i] = kNaN;
+          adopt_new_ = true;
+        }
         publish(k, *a, rejected);
       }
     } catch (const std::exception& e) {
@@ -389,6 +430,8 @@ void NodeAssimilation::diagnose(diagnostic_updater::DiagnosticStatusWrapper& sta
   stat.add("estimates", estimates_);
   stat.add("failures", failures_);
   stat.add("outliers", outliers_);
+  stat.add("adopted", p_.adopt ? std::to_string(adopted_) : std::string("off"));
+  if (!adopt_failure_.empty()) stat.add("adopt_failure", adopt_failure_);
   stat.add("pending_samples", pending_.size());
   stat.addf("estimate_t", "%.9g", last_t_);
   stat.addf("estimate_wall_s", "%.6g", last_wall_);
@@ -399,6 +442,7 @@ void NodeAssimilation::diagnose(diagnostic_updater::DiagnosticStatusWrapper& sta
     const bool have = i < last_values_.size();
     stat.addf(p_.keys[i], "%.9g", have ? last_values_[i] : kNaN);
     stat.addf(p_.keys[i] + "_std", "%.9g", have && i < last_stds_.size() ? last_stds_[i] : kNaN);
+    if (p_.adopt) stat.addf(p_.keys[i] + "_in_use", "%.9g", in_use_[i]);
     if (have) {
       char b[160];
       std::snprintf(b, sizeof b, "%s%s = %.4g +- %.2g", values.empty() ? "" : ", ", p_.keys[i].c_str(), last_values_[i],
@@ -413,9 +457,11 @@ void NodeAssimilation::diagnose(diagnostic_updater::DiagnosticStatusWrapper& sta
   else if (!consistent_)
     stat.summary(diagnostic_msgs::DiagnosticStatus::WARN,
                  "the model does not fit the measurements: residual RMS above 1.5 times the stated noise at t = " +
-                     std::to_string(last_t_) + " s (" + values + "); the estimate is not to be trusted");
+                     std::to_string(last_t_) + " s (" + values + "); the estimate is not to be trusted" +
+                     (p_.adopt ? " (not adopted)" : ""));
   else
-    stat.summary(diagnostic_msgs::DiagnosticStatus::OK, "estimate at t = " + std::to_string(last_t_) + " s: " + values);
+    stat.summary(diagnostic_msgs::DiagnosticStatus::OK, "estimate at t = " + std::to_string(last_t_) + " s: " + values +
+                                                            (p_.adopt ? " (adopted)" : ""));
 }
 
 }  // namespace needle_sim

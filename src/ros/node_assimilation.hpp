@@ -4,7 +4,10 @@
 // (refused ones are counted, never used); the core's ForceAssimilation
 // (calibration/force_assimilation.hpp, what `needle_sim run --assimilate` runs) refitted on a
 // thread of its own under SCHED_IDLE, so that it never makes a step late; ~estimate and
-// a diagnostics entry out. The live simulation is not changed by the estimates.
+// a diagnostics entry out. The live simulation adopts each consistent estimate of the keys it
+// can take during a run (Simulation::adoptable: the interaction's forces, friction and grip),
+// ramped over ~assimilation/adopt_ramp (calibration/parameter_adoption.hpp) so that its
+// published force has no jump; the other keys are estimated only.
 //
 // The refits run the session again from its start: with the scene's own motion, the scene;
 // with commands (topic, tf, plans, ~insert), the base poses the needle took at every step,
@@ -28,6 +31,7 @@
 #include <vector>
 
 #include "needle_sim/calibration/force_assimilation.hpp"
+#include "needle_sim/calibration/parameter_adoption.hpp"
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/observables.hpp"
 
@@ -52,6 +56,10 @@ struct AssimilationParameters {
   // node's clock is refused too (one ahead of a simulation running behind waits for it).
   double max_latency = 0.1;
   double max_future = 0.1;
+  // The live simulation takes each consistent estimate of the keys it can (~assimilation/adopt),
+  // moving to it over adopt_ramp [s of simulation time].
+  bool adopt = true;
+  double adopt_ramp = 0.5;
 };
 
 class NodeAssimilation {
@@ -72,7 +80,8 @@ class NodeAssimilation {
   // The stepping thread, after each step (the simulation's mutex held): the base pose taken
   // (replay), the needle's axis (a wrench's projection), the simulation's time (what samples
   // may be used); wakes the estimator when an estimate is due.
-  void afterStep(const Simulation& sim, const Observables& obs);
+  // An estimate to adopt is taken into the simulation here (its ramp's next value set).
+  void afterStep(Simulation& sim, const Observables& obs);
   // ~reset: the session starts again (samples, commands and the estimate forgotten).
   void restart();
   void diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat);
@@ -133,6 +142,14 @@ class NodeAssimilation {
   std::string last_failure_;
   double last_t_ = -1, last_wall_ = 0, last_rms_ = 0, last_innovation_ = 0;
   std::vector<double> last_values_, last_stds_;
+  // Adoption: the worker leaves an estimate here, the stepping thread takes it (and alone
+  // touches adoption_); ~reset clears both.
+  std::vector<double> to_adopt_;   // per key (NaN: not to be adopted)
+  bool adopt_new_ = false, adopt_clear_ = false;
+  std::vector<double> in_use_;     // per key: the live simulation's value (NaN: not adoptable)
+  long adopted_ = 0;               // estimates adopted
+  std::string adopt_failure_;
+  std::unique_ptr<ParameterAdoption> adoption_;
   std::thread thread_;
 };
 

@@ -191,6 +191,8 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   pnh.param("assimilation/target", a.target, a.target);
   pnh.param("assimilation/max_latency", a.max_latency, a.max_latency);
   pnh.param("assimilation/max_future", a.max_future, a.max_future);
+  pnh.param("assimilation/adopt", a.adopt, a.adopt);
+  pnh.param("assimilation/adopt_ramp", a.adopt_ramp, a.adopt_ramp);
   if (!(a.max_future >= 0)) throw InputError("", "~assimilation/max_future", "must be a time >= 0 [s]");
   return p;
 }

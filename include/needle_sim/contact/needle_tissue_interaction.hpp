@@ -107,6 +107,11 @@ class NeedleTissueInteraction {
   Vec3 forceOnNeedle(int needle) const;
   Vec3 forceOnTissue() const;
   const InteractionSettings& settings() const { return settings_; }
+  // New values of puncture_force, cutting_force, friction and grip_pressure during a run (the
+  // rest of `s` is ignored), taken by every constraint in place from the next solve: an
+  // estimate adopted by the live simulation (Simulation::adopt). A bevel's lateral load
+  // keeps its ratio to the cutting force.
+  void setValues(const InteractionSettings& s);
 
  private:
   struct Track {

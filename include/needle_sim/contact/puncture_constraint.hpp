@@ -28,6 +28,7 @@ class PunctureConstraint : public ContactConstraint {
   }
   double normalForce() const { return lambda[0]; }
   double friction() const { return friction_; }
+  void setFriction(double friction) { friction_ = friction; }  // adopted during a run
 
  private:
   double friction_;

@@ -30,6 +30,7 @@ class ShaftConstraint : public ContactConstraint {
   }
   // The needle this point is on changed (a radius of its own): the grip follows.
   void setGrip(double grip) { grip_ = grip; }
+  void setFriction(double friction) { friction_ = friction; }  // adopted during a run
   double grip() const { return grip_; }
   // The friction bound at the last solve's lateral force.
   double bound() const {

@@ -45,6 +45,12 @@ class TipConstraint : public ContactConstraint {
     return true;
   }
   bool bevel() const { return bevel_force_ > 0; }
+  // Values adopted during a run (NeedleTissueInteraction::setValues): from the next solve.
+  void setForces(double friction, double cutting_force, double bevel_lateral_force) {
+    friction_ = friction;
+    cutting_ = cutting_force;
+    bevel_force_ = bevel_lateral_force;
+  }
   // The bevel's lateral direction (world, unit, perpendicular to the tip axis) at the current
   // frame: its components on the lateral rows.
   void setBevelDirection(const Vec3& b) { bevel_dir_ = {frame.col(1).dot(b), frame.col(2).dot(b)}; }

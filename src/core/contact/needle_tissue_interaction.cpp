@@ -126,6 +126,30 @@ void NeedleTissueInteraction::cutPathNow(int n, std::vector<Vec3>& out) const {
   }
 }
 
+void NeedleTissueInteraction::setValues(const InteractionSettings& s) {
+  settings_.puncture_force = s.puncture_force;
+  settings_.cutting_force = s.cutting_force;
+  settings_.friction = s.friction;
+  settings_.grip_pressure = s.grip_pressure;
+  for (const auto& c : constraints_) {
+    switch (c->kind()) {
+      case ConstraintKind::Tip: {
+        const BevelParameters& b = needles_[c->needle]->bevel();
+        static_cast<TipConstraint&>(*c).setForces(settings_.friction, settings_.cutting_force,
+                                                  b.enabled ? b.lateral_ratio * settings_.cutting_force : 0.0);
+        break;
+      }
+      case ConstraintKind::Shaft:
+        static_cast<ShaftConstraint&>(*c).setFriction(settings_.friction);
+        static_cast<ShaftConstraint&>(*c).setGrip(grip(c->needle));
+        break;
+      case ConstraintKind::Puncture:
+        static_cast<PunctureConstraint&>(*c).setFriction(settings_.friction);
+        break;
+    }
+  }
+}
+
 double NeedleTissueInteraction::grip(int n) const {
   // The normal force of the radial pressure over one shaft point's share of the path.
   return 2 * M_PI * needles_[n]->beam().section().outer_radius * settings_.grip_pressure * settings_.shaft_spacing;

@@ -361,6 +361,44 @@ EmbeddedPoint Simulation::embedPoint(const Vec3& p, const std::string& key, cons
   return points_->embedPoint(PointLocator(tissue_->body().mesh()), p, "", key, what);
 }
 
+namespace {
+
+// The adoptable keys and their fields (Simulation::adopt).
+double* adoptableField(InteractionSettings& s, const std::string& key) {
+  if (key == "interaction.cutting_force") return &s.cutting_force;
+  if (key == "interaction.puncture_force") return &s.puncture_force;
+  if (key == "interaction.friction") return &s.friction;
+  if (key == "interaction.grip_pressure") return &s.grip_pressure;
+  return nullptr;
+}
+
+}  // namespace
+
+bool Simulation::adoptable(const std::string& key) {
+  InteractionSettings s;
+  return adoptableField(s, key) != nullptr;
+}
+
+void Simulation::adopt(const std::string& key, double value) {
+  if (!adoptable(key))
+    throw InputError("", key, "not a value the live simulation can take during a run (it can: interaction.cutting_force, "
+                              "puncture_force, friction, grip_pressure)");
+  if (!interaction_) throw InputError("", key, "the scene has no needle-tissue interaction");
+  InteractionSettings s = interaction_->settings();
+  const std::string name = key.substr(key.find('.') + 1);
+  for (const ParameterDeclaration& d : InteractionSettings::parameters().declarations())
+    if (d.key == name && !d.range.contains(value))
+      throw InputError("", key, "the value " + Range::number(value) + " is outside " + d.range.text());
+  *adoptableField(s, key) = value;
+  interaction_->setValues(s);
+}
+
+double Simulation::valueInUse(const std::string& key) const {
+  if (!adoptable(key) || !interaction_) return std::numeric_limits<double>::quiet_NaN();
+  InteractionSettings s = interaction_->settings();
+  return *adoptableField(s, key);
+}
+
 int Simulation::findNeedle(const std::string& name) const {
   for (int i = 0; i < numNeedles(); ++i)
     if (needles_[i]->name() == name) return i;
