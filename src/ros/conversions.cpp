@@ -160,6 +160,18 @@ std::vector<needle_sim::TargetState> targetStates(const StepFrame& f, const std:
     m.displacement_error = toVector(t.has_error ? t.error : Vec3::Constant(nan));
     m.displacement_error_bound = t.has_error ? t.error_bound : nan;
     m.error_step = t.has_error ? t.error_step : -1;
+    m.predicted_t = nan;
+    m.predicted_position = toPoint(Vec3::Constant(nan));
+    m.predicted_covariance.fill(nan);
+    if (i < f.predictions.size()) {
+      const TargetPrediction& p = f.predictions[i];
+      m.predicted_t = p.t;
+      m.predicted_position = toPoint(p.position);
+      Mat3 c = p.covariance;
+      if (t.has_error && std::isfinite(t.error_bound)) c.diagonal().array() += t.error_bound * t.error_bound;
+      for (int r = 0; r < 3; ++r)
+        for (int k = 0; k < 3; ++k) m.predicted_covariance[3 * r + k] = c(r, k);
+    }
     out.push_back(m);
   }
   return out;

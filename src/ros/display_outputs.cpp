@@ -6,6 +6,8 @@
 #include <sensor_msgs/point_cloud2_iterator.h>
 #include <visualization_msgs/MarkerArray.h>
 
+#include <Eigen/Eigenvalues>
+
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -32,6 +34,7 @@ struct DisplayOutputs::Frame {
   std::vector<std::string> targets;
   std::vector<Vec3> target_x;
   std::vector<double> target_bound;  // per target, the error bound's radius (< 0: none)
+  std::vector<TargetPrediction> predictions;  // per target (empty: none)
   int primary = -1;
   bool target_markers = false;
 };
@@ -66,7 +69,7 @@ DisplayOutputs::DisplayOutputs(ros::NodeHandle& pnh, const NodeParameters& p, co
 }
 
 void DisplayOutputs::publish(const Simulation& sim, const std::shared_ptr<const ObservableNames>& names, int primary,
-                             const Observables& obs) {
+                             const Observables& obs, std::vector<TargetPrediction> predictions) {
   auto f = std::make_shared<Frame>();
   f->header.stamp = ros::Time::now();
   f->header.frame_id = p_.tissue_frame;
@@ -95,6 +98,7 @@ void DisplayOutputs::publish(const Simulation& sim, const std::shared_ptr<const 
     const bool has = i < static_cast<int>(obs.targets.size()) && obs.targets[i].has_error;
     f->target_bound.push_back(has ? obs.targets[i].error_bound : -1.0);
   }
+  f->predictions = std::move(predictions);
   f->primary = sim.numTargets() > 0 ? std::min(primary, sim.numTargets() - 1) : -1;
   f->target_markers = target_markers_pub_.getNumSubscribers() > 0;
   if (sim.hasTissue()) {
@@ -229,6 +233,31 @@ void DisplayOutputs::build(const Frame& f) {
         b.action = visualization_msgs::Marker::DELETE;
       }
       arr.markers.push_back(b);
+      // The online estimate's predicted position and its 95 % ellipsoid (chi-square, 3 degrees
+      // of freedom: 7.81), the covariance with the discretisation bound's variance added as in
+      // TargetState; axes along its eigenvectors.
+      visualization_msgs::Marker e = m;
+      e.ns = "target_prediction/" + f.targets[i];
+      e.action = visualization_msgs::Marker::DELETE;
+      if (i < f.predictions.size()) {
+        Mat3 c = f.predictions[i].covariance;
+        if (f.target_bound[i] > 0) c.diagonal().array() += f.target_bound[i] * f.target_bound[i];
+        const Eigen::SelfAdjointEigenSolver<Mat3> es(0.5 * (c + c.transpose()));
+        if (es.info() == Eigen::Success && es.eigenvalues().allFinite() && f.predictions[i].position.allFinite()) {
+          Mat3 axes = es.eigenvectors();
+          if (axes.determinant() < 0) axes.col(2) *= -1;  // a rotation
+          e.action = visualization_msgs::Marker::ADD;
+          e.pose = toPose(f.predictions[i].position, Eigen::Quaterniond(axes));
+          // At least a nanometre (rviz refuses a zero scale): a flat (rank-deficient)
+          // covariance is drawn as a disc.
+          const Vec3 r = (7.81 * es.eigenvalues().cwiseMax(0.0)).cwiseSqrt();
+          e.scale.x = std::max(2 * r.x(), 1e-9);
+          e.scale.y = std::max(2 * r.y(), 1e-9);
+          e.scale.z = std::max(2 * r.z(), 1e-9);
+          e.color.r = 0.2f, e.color.g = 0.8f, e.color.b = 1.f, e.color.a = 0.4f;
+        }
+      }
+      arr.markers.push_back(e);
     }
     target_markers_pub_.publish(arr);
   }

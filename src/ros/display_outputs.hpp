@@ -5,7 +5,8 @@
 // legend in ~tissue/legend), the error indicator per refinement level
 // (~tissue/error_markers), each needle (~<needle>/path, ~<needle>/marker, and ~<needle>/tip_path,
 // the centre line of its cut path where it is now), the targets
-// (~target/markers), and the tf frames <needle>_tip, <needle>_base, <needle>_bevel (bevel
+// (~target/markers: each target, its error bound's sphere and the online estimate's 95 %
+// ellipsoid), and the tf frames <needle>_tip, <needle>_base, <needle>_bevel (bevel
 // tips: y along the bevel), target/<name>, target
 // (and ~parent_frame -> ~tissue_frame, static). Snapshots are taken on the stepping thread
 // (positions only); fields and messages are built on the output thread.
@@ -21,6 +22,7 @@
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/tissue_snapshot.hpp"
+#include "step_frame.hpp"
 
 namespace needle_sim {
 
@@ -32,8 +34,10 @@ class DisplayOutputs {
  public:
   DisplayOutputs(ros::NodeHandle& pnh, const NodeParameters& p, const Scene& scene, OutputQueue& out);
   // On the stepping thread, the simulation's lock held.
+  // predictions: the online estimate's per target (NodeAssimilation; empty: none), drawn as
+  // its 95 % ellipsoid.
   void publish(const Simulation& sim, const std::shared_ptr<const ObservableNames>& names, int primary_target,
-               const Observables& obs);
+               const Observables& obs, std::vector<TargetPrediction> predictions);
   double rate() const { return rate_; }
   void setRate(double hz) { rate_ = hz; }
   double range() const { return range_; }  // |u| at the top of the colour scale [m]

@@ -265,6 +265,7 @@ void NodeAssimilation::restart() {
     commands_.clear();
     adopt_new_ = false;
     adopt_clear_ = true;  // the new session starts from the scene's values
+    predictions_.clear();
     committed_ = -std::numeric_limits<double>::infinity();
     sim_time_ = 0;
     next_due_ = p_.every;
@@ -380,6 +381,9 @@ void NodeAssimilation::worker() {
             if (!(i < k.stds.size() && std::isfinite(k.stds[i]))) to_adopt_[i] = kNaN;
           adopt_new_ = true;
         }
+        predictions_.clear();
+        for (size_t j = 0; j < k.target_end.size() && j < k.target_cov.size(); ++j)
+          predictions_.push_back({k.t, k.target_end[j], k.target_cov[j]});
         publish(k, *a, rejected);
       }
     } catch (const std::exception& e) {
@@ -392,6 +396,11 @@ void NodeAssimilation::worker() {
       ROS_ERROR_THROTTLE(10.0, "needle_sim: assimilation: the estimate failed at t = %.3f s: %s", until, e.what());
     }
   }
+}
+
+std::vector<TargetPrediction> NodeAssimilation::predictions() {
+  std::lock_guard<std::mutex> lk(mutex_);
+  return predictions_;
 }
 
 void NodeAssimilation::publish(const AssimilationCheckpoint& k, const ForceAssimilation& a, long rejected) {

@@ -34,6 +34,7 @@
 #include "needle_sim/calibration/parameter_adoption.hpp"
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/observables.hpp"
+#include "step_frame.hpp"
 
 namespace needle_sim {
 
@@ -85,6 +86,9 @@ class NodeAssimilation {
   // ~reset: the session starts again (samples, commands and the estimate forgotten).
   void restart();
   void diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat);
+  // The latest estimate's prediction per target (empty before the first; TargetState, the
+  // rviz ellipsoid).
+  std::vector<TargetPrediction> predictions();
 
  private:
   struct Sample {
@@ -146,6 +150,7 @@ class NodeAssimilation {
   // touches adoption_); ~reset clears both.
   std::vector<double> to_adopt_;   // per key (NaN: not to be adopted)
   bool adopt_new_ = false, adopt_clear_ = false;
+  std::vector<TargetPrediction> predictions_;
   std::vector<double> in_use_;     // per key: the live simulation's value (NaN: not adoptable)
   long adopted_ = 0;               // estimates adopted
   std::string adopt_failure_;

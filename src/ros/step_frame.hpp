@@ -8,12 +8,21 @@
 #include <array>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "needle_sim/command/command_guard.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/realtime_schedule.hpp"
 
 namespace needle_sim {
+
+// The online estimate's prediction of a target (NodeAssimilation): its position at the end of
+// the motion known and the covariance of the parameters (and a measured offset) [m^2].
+struct TargetPrediction {
+  double t = 0;  // the estimate's last sample
+  Vec3 position = Vec3::Zero();
+  Mat3 covariance = Mat3::Zero();
+};
 
 struct StepFrame {
   ros::Time stamp;
@@ -28,6 +37,7 @@ struct StepFrame {
   double constraint_residual = 0;
   int primary_target = 0;
   bool send_target_point = false, send_target_state = false;  // subscribed
+  std::vector<TargetPrediction> predictions;  // per target, with send_target_state; empty: none
 };
 
 }  // namespace needle_sim

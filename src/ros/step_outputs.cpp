@@ -53,7 +53,10 @@ void SimulatorRos::publishStep(double ms) {
     f.send_target_point = sim_->numTargets() > 0 && target_pub_.getNumSubscribers() > 0;
     f.send_target_state = sim_->numTargets() > 0 && target_state_pub_.getNumSubscribers() > 0;
     if (action_) action_->update(obs_);
-    if (assimilation_) assimilation_->afterStep(*sim_, obs_);
+    if (assimilation_) {
+      assimilation_->afterStep(*sim_, obs_);
+      if (f.send_target_state) f.predictions = assimilation_->predictions();
+    }
   } else {
     f.obs.step = sim_->stepIndex();
     f.obs.time = sim_->time();
@@ -64,7 +67,8 @@ void SimulatorRos::publishStep(double ms) {
   if (!failure_.empty()) return;
   if ((wall - last_display_).toSec() >= 1.0 / display_->rate()) {
     last_display_ = wall;
-    display_->publish(*sim_, names_, primary_target_, obs_);
+    display_->publish(*sim_, names_, primary_target_, obs_,
+                      assimilation_ ? assimilation_->predictions() : std::vector<TargetPrediction>{});
   }
 }
 

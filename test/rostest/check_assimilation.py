@@ -27,13 +27,16 @@ import threading
 import time
 import unittest
 
+import numpy
+
 import rospy
 import rostest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import WrenchStamped
 from needle_sim import paths
-from needle_sim.msg import ParameterEstimate, SimStatus
+from needle_sim.msg import ParameterEstimate, SimStatus, TargetState
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
 HIDDEN = 0.03
 NOISE = 5e-4
@@ -41,8 +44,10 @@ SCENE = "phantom_insertion_8x4x4.yaml"
 # The insertion alone, the approach at the scene's speed (puncture at 0.3 s) and the cut slowed to
 # 20 mm in 5.7 s: long enough to see an estimate adopted while the tip cuts, however long the
 # fits take (each runs the session again: seconds of wall time).
+# A target 1.5 mm beside the path: its predicted position and covariance in TargetState and rviz.
 SETS = ["time.dt=0.002", "time.duration=6.0",
-        "needle.motion=[{t: 0.0, advance: 0.0}, {t: 0.3, advance: 0.003}, {t: 6.0, advance: 0.023}]"]
+        "needle.motion=[{t: 0.0, advance: 0.0}, {t: 0.3, advance: 0.003}, {t: 6.0, advance: 0.023}]",
+        "targets=[{name: T, point: [0.022, 0.0115, 0.0105], radius: 0.001}]"]
 
 
 def patient(out, exact=None):
@@ -237,6 +242,47 @@ class Assimilation(unittest.TestCase):
         self.assertGreater(len(jumps), 100)
         rospy.loginfo("largest change between two wrench messages while cutting: %.3g N", max(jumps))
         self.assertLess(max(jumps), NOISE)
+
+        # The target's prediction: TargetState carries the latest estimate's predicted position
+        # and covariance plus the discretisation bound's variance on the diagonal; rviz draws
+        # its 95 % ellipsoid (axes 2 sqrt(7.81 eigenvalue)).
+        got = {}
+
+        def on_state(m):
+            with lock:
+                got["state"] = m
+
+        def on_markers(m):
+            for x in m.markers:
+                if x.ns == "target_prediction/T":
+                    with lock:
+                        got["marker"] = x
+
+        subs = [rospy.Subscriber("needle_sim/target/state", TargetState, on_state, queue_size=1),
+                rospy.Subscriber("needle_sim/target/markers", MarkerArray, on_markers, queue_size=1)]
+        deadline = time.time() + 20
+        ok = False
+        while time.time() < deadline and not ok:
+            time.sleep(0.2)
+            with lock:
+                est = st["estimates"][-1]
+                ts, mk = got.get("state"), got.get("marker")
+            ok = ts is not None and mk is not None and ts.predicted_t == est.t and mk.action == mk.ADD
+        for s_ in subs:
+            s_.unregister()
+        self.assertTrue(ok, "no TargetState and prediction marker of the latest estimate")
+        self.assertEqual(list(est.targets), ["T"])
+        p = est.target_positions[0]
+        self.assertEqual((ts.predicted_position.x, ts.predicted_position.y, ts.predicted_position.z), (p.x, p.y, p.z))
+        b = ts.displacement_error_bound
+        self.assertTrue(math.isfinite(b) and b > 0, "the discretisation bound is computed (~target_error_period)")
+        cov = numpy.array(est.target_covariances[:9]).reshape(3, 3) + b * b * numpy.eye(3)
+        numpy.testing.assert_allclose(numpy.array(ts.predicted_covariance).reshape(3, 3), cov, rtol=1e-12, atol=0)
+        self.assertAlmostEqual(mk.pose.position.x, p.x, delta=1e-12)
+        axes = sorted(max(2 * math.sqrt(7.81 * max(e, 0.0)), 1e-9) for e in numpy.linalg.eigvalsh(cov))
+        numpy.testing.assert_allclose(sorted((mk.scale.x, mk.scale.y, mk.scale.z)), axes, rtol=1e-6)
+        rospy.loginfo("target T predicted at (%.6f, %.6f, %.6f), 95 %% axes %s mm (bound %.3g mm)", p.x, p.y, p.z,
+                      ", ".join("%.4f" % (1e3 * a) for a in axes), 1e3 * b)
 
 
 if __name__ == "__main__":
