@@ -269,8 +269,26 @@ void NodeAssimilation::restart() {
     committed_ = -std::numeric_limits<double>::infinity();
     sim_time_ = 0;
     next_due_ = p_.every;
+    // The session's estimate, for diagnostics: none yet.
+    estimates_ = failures_ = 0;
+    last_failure_.clear();
+    consistent_ = true;
+    last_t_ = -1, last_wall_ = last_rms_ = last_innovation_ = 0;
+    last_values_.clear();
+    last_stds_.clear();
   }
   wake_.notify_one();
+  // The latched ~estimate is the old session's: replaced by one that has no samples yet (the
+  // values NaN, the deviations infinite), so that a late subscriber is not told it.
+  needle_sim::ParameterEstimate m;
+  m.header.stamp = ros::Time::now();  // the reset
+  m.header.frame_id = tissue_frame_;
+  m.keys = p_.keys;
+  m.values.assign(p_.keys.size(), kNaN);
+  m.std.assign(p_.keys.size(), std::numeric_limits<double>::infinity());
+  m.units = units_;
+  m.consistent = true;
+  estimate_pub_.publish(m);
 }
 
 ForceRecord NodeAssimilation::rows(std::vector<Sample> batch) const {

@@ -4,7 +4,8 @@ live. A twin experiment: the "patient" is the phantom (8x4x4, 2 ms steps, its ow
 run by the tool with a hidden cutting force (30 mN; the scene's nominal 20 mN); its axial
 force plus 0.5 mN of Gaussian noise (seed 1) is published to ~needle/measured_wrench every
 10 ms of the node's clock, stamped at the patient's time, in the needle's base frame (as
-~needle/wrench gives it). The node (assimilation.test) starts from the nominal value.
+~needle/wrench gives it). The node (assimilation.test) starts from the nominal value and
+adopts its estimates.
 
 Asserted:
 - the last estimate (the samples up to the scene's end) within 10 % of the hidden value and
@@ -13,7 +14,11 @@ Asserted:
   does not know, 5 stamped before the first estimate's window closed (stale, sent 1.5 s in),
   5 a second in the future; and 5
   gross outliers (100 times the noise) are rejected by the estimator (outliers >= 5);
-- the estimate's diagnostics entry names the estimate (OK) and the refusals.
+- the estimate's diagnostics entry names the estimate (OK) and the refusals;
+- adoption: the node's own force meets the patient's after the first estimate's ramp, with
+  no jump between two messages beyond the noise;
+- the target's predicted position and covariance in TargetState and its ellipsoid in rviz;
+  after ~reset the latched estimate is the new session's (none).
 The same run without the outliers or the bad input gives the same estimate within its std
 (the bad input did not move it): checked against the tool's `run --data --assimilate` on
 the same samples (summary.json) within 3 standard deviations."""
@@ -283,6 +288,14 @@ class Assimilation(unittest.TestCase):
         numpy.testing.assert_allclose(sorted((mk.scale.x, mk.scale.y, mk.scale.z)), axes, rtol=1e-6)
         rospy.loginfo("target T predicted at (%.6f, %.6f, %.6f), 95 %% axes %s mm (bound %.3g mm)", p.x, p.y, p.z,
                       ", ".join("%.4f" % (1e3 * a) for a in axes), 1e3 * b)
+
+        # ~reset: a late subscriber to the latched ~estimate is told the new session has none
+        # yet, not the old session's estimate.
+        self.assertTrue(rospy.ServiceProxy("needle_sim/reset", Trigger)().success)
+        time.sleep(0.5)
+        latched = rospy.wait_for_message("needle_sim/estimate", ParameterEstimate, timeout=10)
+        self.assertEqual(latched.samples, 0)
+        self.assertTrue(math.isnan(latched.values[0]) and math.isinf(latched.std[0]), latched)
 
 
 if __name__ == "__main__":
