@@ -167,8 +167,7 @@ std::vector<needle_sim::TargetState> targetStates(const StepFrame& f, const std:
       const TargetPrediction& p = f.predictions[i];
       m.predicted_t = p.t;
       m.predicted_position = toPoint(p.position);
-      Mat3 c = p.covariance;
-      if (t.has_error && std::isfinite(t.error_bound)) c.diagonal().array() += t.error_bound * t.error_bound;
+      const Mat3 c = p.withBound(t.has_error ? t.error_bound : nan);
       for (int r = 0; r < 3; ++r)
         for (int k = 0; k < 3; ++k) m.predicted_covariance[3 * r + k] = c(r, k);
     }

@@ -240,8 +240,7 @@ void DisplayOutputs::build(const Frame& f) {
       e.ns = "target_prediction/" + f.targets[i];
       e.action = visualization_msgs::Marker::DELETE;
       if (i < f.predictions.size()) {
-        Mat3 c = f.predictions[i].covariance;
-        if (f.target_bound[i] > 0) c.diagonal().array() += f.target_bound[i] * f.target_bound[i];
+        const Mat3 c = f.predictions[i].withBound(f.target_bound[i]);
         const Eigen::SelfAdjointEigenSolver<Mat3> es(0.5 * (c + c.transpose()));
         if (es.info() == Eigen::Success && es.eigenvalues().allFinite() && f.predictions[i].position.allFinite()) {
           Mat3 axes = es.eigenvectors();

@@ -6,6 +6,7 @@
 #include <ros/time.h>
 
 #include <array>
+#include <cmath>
 #include <memory>
 #include <string>
 #include <vector>
@@ -22,6 +23,13 @@ struct TargetPrediction {
   double t = 0;  // the estimate's last sample
   Vec3 position = Vec3::Zero();
   Mat3 covariance = Mat3::Zero();
+  // What TargetState and the rviz ellipsoid show: the covariance plus the discretisation's,
+  // bound^2 on the diagonal (none for a bound that is not positive and finite).
+  Mat3 withBound(double bound) const {
+    Mat3 c = covariance;
+    if (std::isfinite(bound) && bound > 0) c.diagonal().array() += bound * bound;
+    return c;
+  }
 };
 
 struct StepFrame {
