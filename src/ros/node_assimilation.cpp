@@ -16,7 +16,7 @@
 namespace needle_sim {
 
 namespace {
-const char* const kRuleNames[] = {"non_finite", "frame", "stale", "future"};
+const char* const kRuleNames[] = {"non_finite", "frame", "stale", "future", "shape"};
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 }  // namespace
 
@@ -41,10 +41,13 @@ NodeAssimilation::NodeAssimilation(ros::NodeHandle pnh, const AssimilationParame
   const bool force = given(p.wrench_noise, "~assimilation/wrench_noise");
   const bool tip = given(p.tip_noise, "~assimilation/tip_noise");
   const bool target = given(p.target_noise, "~assimilation/target_noise");
-  if (!force && !tip && !target)
+  const bool shape = given(p.shape_noise, "~assimilation/shape_noise");
+  if (!force && !tip && !target && !shape)
     throw InputError("", "~assimilation/keys",
                      "needs a measurement to estimate from: give the noise of at least one of ~assimilation/wrench_noise "
-                     "[N], ~assimilation/tip_noise [m], ~assimilation/target_noise [m]");
+                     "[N], ~assimilation/tip_noise [m], ~assimilation/target_noise [m], ~assimilation/shape_noise [m]");
+  if (shape && !(std::isfinite(p.shape_spacing) && p.shape_spacing > 0))
+    throw InputError("", "~assimilation/shape_spacing", "must be a positive arc length [m]");
   if (!(p.every > 0)) throw InputError("", "~assimilation/every", "must be a positive time [s]");
   if (!(p.outlier_gate > 1)) throw InputError("", "~assimilation/outlier_gate", "must exceed 1 (noise standard deviations)");
   if (!(p.max_latency >= 0)) throw InputError("", "~assimilation/max_latency", "must be a time >= 0 [s]");
@@ -60,7 +63,8 @@ NodeAssimilation::NodeAssimilation(ros::NodeHandle pnh, const AssimilationParame
   if (target && target_ < 0)
     throw InputError("", "~assimilation/target", "the scene has no target '" + p.target + "' to measure");
   base_frame_ = scene.needles[needle_].name + "_base";
-  channels_ = {force, tip, target};
+  channels_ = {force, tip, target, shape};
+  needle_length_ = scene.needles[needle_].length;
 
   AssimilationSettings& s = settings_;
   s.fit.scene = scene_file;
@@ -70,6 +74,7 @@ NodeAssimilation::NodeAssimilation(ros::NodeHandle pnh, const AssimilationParame
   s.fit.noise = force ? p.wrench_noise : kNaN;
   s.fit.tip_noise = tip ? p.tip_noise : kNaN;
   s.fit.target_noise = target ? p.target_noise : kNaN;
+  s.fit.shape_noise = shape ? p.shape_noise : kNaN;
   s.fit.threads = 1;  // one core is the live loop's
   s.fit.limits = limits;
   s.fit.cancel = &cancel_;
@@ -108,6 +113,9 @@ NodeAssimilation::NodeAssimilation(ros::NodeHandle pnh, const AssimilationParame
     subs_.push_back(pnh.subscribe<geometry_msgs::PointStamped>(
         "target/measured", 100,
         [this](const geometry_msgs::PointStamped::ConstPtr& m) { onPoint(2, "target/measured", m); }));
+  if (shape)
+    subs_.push_back(pnh.subscribe<geometry_msgs::PoseArray>(
+        name + "/measured_shape", 100, [this](const geometry_msgs::PoseArray::ConstPtr& m) { onShape(m); }));
   next_due_ = p.every;
   thread_ = std::thread(&NodeAssimilation::worker, this);
 }
@@ -214,6 +222,26 @@ void NodeAssimilation::onPoint(int channel, const char* topic, const geometry_ms
   queue(s, topic);
 }
 
+void NodeAssimilation::onShape(const geometry_msgs::PoseArray::ConstPtr& m) {
+  static const char* topic = "<needle>/measured_shape";
+  const size_t n = m->poses.size();
+  if (n == 0) return refuse(Shape, topic, "no pose: a shape needs at least its tip");
+  // Points further back than the needle is long are not on it (a spacing or a length wrong).
+  if (static_cast<double>(n - 1) * p_.shape_spacing > needle_length_ * (1 + 1e-9))
+    return refuse(Shape, topic, std::to_string(n) + " poses at ~assimilation/shape_spacing " + std::to_string(p_.shape_spacing) +
+                                    " m reach further back than the needle's " + std::to_string(needle_length_) + " m");
+  for (const auto& q : m->poses)
+    if (!fromPoint(q.position).allFinite()) return refuse(NonFinite, topic, "a non-finite position");
+  Sample s;
+  Rigid r;
+  if (!admit(m->header, topic, s.t, r)) return;
+  if (m->header.frame_id == base_frame_) return refuse(Frame, topic, "a shape in the moving base frame: give it in a fixed frame");
+  s.channel = 3;
+  // The message's last pose is the tip: the record's points run from the tip back.
+  for (size_t i = n; i-- > 0;) s.shape.push_back(r.apply(fromPoint(m->poses[i].position)));
+  queue(s, topic);
+}
+
 void NodeAssimilation::afterStep(Simulation& sim, const Observables& obs) {
   bool due = false;
   {
@@ -287,6 +315,7 @@ void NodeAssimilation::restart() {
   m.values.assign(p_.keys.size(), kNaN);
   m.std.assign(p_.keys.size(), std::numeric_limits<double>::infinity());
   m.units = units_;
+  m.innovation_force = m.innovation_tip = m.innovation_target = m.innovation_shape = kNaN;
   m.consistent = true;
   estimate_pub_.publish(m);
 }
@@ -295,21 +324,25 @@ ForceRecord NodeAssimilation::rows(std::vector<Sample> batch) const {
   std::stable_sort(batch.begin(), batch.end(), [](const Sample& a, const Sample& b) { return a.t < b.t; });
   ForceRecord r;
   if (channels_[2]) r.targets.assign(static_cast<size_t>(num_targets_), {});
+  r.shape_spacing = p_.shape_spacing;
   for (const Sample& s : batch) {
     // Samples of different sensors at one time share a row; a second sample of one sensor
     // at that time starts a row of its own a nanosecond later (the record's times increase).
     const bool taken = !r.t.empty() && std::abs(s.t - r.t.back()) < 1e-9 &&
                        (s.channel == 0 ? std::isfinite(r.force.back())
                         : s.channel == 1 ? r.tip.back().allFinite()
+                        : s.channel == 3 ? !r.shape.back().empty()
                                          : r.targets[static_cast<size_t>(target_)].back().allFinite());
     if (r.t.empty() || s.t > r.t.back() + 1e-9 || taken) {
       r.t.push_back(r.t.empty() ? s.t : std::max(s.t, r.t.back() + 1e-9));
       r.force.push_back(kNaN);
       if (channels_[1]) r.tip.push_back(Vec3::Constant(kNaN));
       if (channels_[2]) r.targets[static_cast<size_t>(target_)].push_back(Vec3::Constant(kNaN));
+      if (channels_[3]) r.shape.emplace_back();
     }
     if (s.channel == 0) r.force.back() = s.force;
     else if (s.channel == 1) r.tip.back() = s.point;
+    else if (s.channel == 3) r.shape.back() = s.shape;
     else r.targets[static_cast<size_t>(target_)].back() = s.point;
   }
   return r;
@@ -365,12 +398,23 @@ void NodeAssimilation::worker() {
           held.t.insert(held.t.end(), r.t.begin(), r.t.end());
           held.force.insert(held.force.end(), r.force.begin(), r.force.end());
           held.tip.insert(held.tip.end(), r.tip.begin(), r.tip.end());
+          held.shape.insert(held.shape.end(), r.shape.begin(), r.shape.end());
           for (size_t j = 0; j < held.targets.size(); ++j)
             held.targets[j].insert(held.targets[j].end(), r.targets[j].begin(), r.targets[j].end());
         }
         if (held.t.size() < 2) continue;
         AssimilationSettings s = settings_;
         s.fit.commands = commands;
+        // Adopted as soon as fitted, before the targets' prediction (whole-scene runs: seconds).
+        s.on_fit = [this, &generation](const AssimilationCheckpoint& k) {
+          std::lock_guard<std::mutex> lk(mutex_);
+          if (generation_ != generation || cancel_ || !p_.adopt || !k.consistent) return;
+          // A key the data do not determine yet (infinite std) keeps its value in use.
+          to_adopt_ = k.values;
+          for (size_t i = 0; i < to_adopt_.size(); ++i)
+            if (!(i < k.stds.size() && std::isfinite(k.stds[i]))) to_adopt_[i] = kNaN;
+          adopt_new_ = true;
+        };
         a = std::make_unique<ForceAssimilation>(s, held);
         held = ForceRecord{};
       } else {
@@ -392,13 +436,6 @@ void NodeAssimilation::worker() {
         last_values_ = k.values;
         last_stds_ = k.stds;
         outliers_ = a->outliers();
-        if (p_.adopt && k.consistent) {
-          // A key the data do not determine yet (infinite std) keeps its value in use.
-          to_adopt_ = k.values;
-          for (size_t i = 0; i < to_adopt_.size(); ++i)
-            if (!(i < k.stds.size() && std::isfinite(k.stds[i]))) to_adopt_[i] = kNaN;
-          adopt_new_ = true;
-        }
         predictions_.clear();
         for (size_t j = 0; j < k.target_end.size() && j < k.target_cov.size(); ++j)
           predictions_.push_back({k.t, k.target_end[j], k.target_cov[j]});
@@ -435,6 +472,10 @@ void NodeAssimilation::publish(const AssimilationCheckpoint& k, const ForceAssim
   m.rejected = rejected;
   m.rms_residual = k.rms;
   m.innovation_rms = k.innovation_rms;
+  m.innovation_force = k.innovation_force;
+  m.innovation_tip = k.innovation_tip;
+  m.innovation_target = k.innovation_target;
+  m.innovation_shape = k.innovation_shape;
   m.units = a.weights().units ? a.weights().units : units_;
   m.consistent = k.consistent;
   m.wall_s = k.wall_s;

@@ -16,6 +16,7 @@
 
 #include <diagnostic_updater/diagnostic_updater.h>
 #include <geometry_msgs/PointStamped.h>
+#include <geometry_msgs/PoseArray.h>
 #include <geometry_msgs/WrenchStamped.h>
 #include <tf2_ros/buffer.h>
 
@@ -49,6 +50,10 @@ struct AssimilationParameters {
   double wrench_noise = std::numeric_limits<double>::quiet_NaN();  // [N], of the axial force
   double tip_noise = std::numeric_limits<double>::quiet_NaN();     // [m], per coordinate
   double target_noise = std::numeric_limits<double>::quiet_NaN();  // [m], per coordinate
+  double shape_noise = std::numeric_limits<double>::quiet_NaN();   // [m], per coordinate of each point
+  // [m] the arc length between a measured shape's points (~<needle>/measured_shape: the last
+  // pose at the tip, each one before it this much further back along the needle)
+  double shape_spacing = 5e-4;
   double outlier_gate = 10;       // residual / noise beyond which the estimator rejects a sample
   std::string needle;             // the needle measured ("": the first)
   std::string target;             // the target ~target/measured measures ("": the first)
@@ -66,7 +71,7 @@ struct AssimilationParameters {
 class NodeAssimilation {
  public:
   // Refused measurements, by rule (counted; the first of each kind a second is warned).
-  enum Rule { NonFinite, Frame, Stale, Future, kRules };
+  enum Rule { NonFinite, Frame, Stale, Future, Shape, kRules };
 
   // sim_seconds: a ROS time in the simulation's seconds (the node's clock origin). replay:
   // the refits follow the recorded base poses (not the scene's own motion). Subscribes in
@@ -93,12 +98,14 @@ class NodeAssimilation {
  private:
   struct Sample {
     double t = 0;
-    int channel = 0;  // 0 force, 1 tip, 2 target
+    int channel = 0;  // 0 force, 1 tip, 2 target, 3 shape
     double force = 0;
     Vec3 point = Vec3::Zero();
+    std::vector<Vec3> shape;  // from the tip back (ForceRecord::shape)
   };
   void onWrench(const geometry_msgs::WrenchStamped::ConstPtr& m);
   void onPoint(int channel, const char* topic, const geometry_msgs::PointStamped::ConstPtr& m);  // tip, target
+  void onShape(const geometry_msgs::PoseArray::ConstPtr& m);
   // The message's time in simulation seconds and its frame's transform to the tissue frame
   // (the needle's base frame: identity, its x taken as the axial force); false (counted,
   // warned) when its frame has none.
@@ -120,7 +127,8 @@ class NodeAssimilation {
   bool allow_empty_frame_ = false;
   std::function<double(const ros::Time&)> sim_seconds_;
   std::function<ros::Time(double)> ros_time_;
-  std::array<bool, 3> channels_{};  // force, tip, target subscribed
+  std::array<bool, 4> channels_{};  // force, tip, target, shape subscribed
+  double needle_length_ = 0;        // [m] a shape's points beyond it are refused
   std::string units_;
   ros::Publisher estimate_pub_;
   std::vector<ros::Subscriber> subs_;

@@ -186,6 +186,8 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   pnh.param("assimilation/wrench_noise", a.wrench_noise, a.wrench_noise);
   pnh.param("assimilation/tip_noise", a.tip_noise, a.tip_noise);
   pnh.param("assimilation/target_noise", a.target_noise, a.target_noise);
+  pnh.param("assimilation/shape_noise", a.shape_noise, a.shape_noise);
+  pnh.param("assimilation/shape_spacing", a.shape_spacing, a.shape_spacing);
   pnh.param("assimilation/outlier_gate", a.outlier_gate, a.outlier_gate);
   pnh.param("assimilation/needle", a.needle, a.needle);
   pnh.param("assimilation/target", a.target, a.target);

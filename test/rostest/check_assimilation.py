@@ -4,8 +4,10 @@ live. A twin experiment: the "patient" is the phantom (8x4x4, 2 ms steps, its ow
 run by the tool with a hidden cutting force (30 mN; the scene's nominal 20 mN); its axial
 force plus 0.5 mN of Gaussian noise (seed 1) is published to ~needle/measured_wrench every
 10 ms of the node's clock, stamped at the patient's time, in the needle's base frame (as
-~needle/wrench gives it). The node (assimilation.test) starts from the nominal value and
-adopts its estimates.
+~needle/wrench gives it); and its needle's shape (the beam nodes of the patient's
+~needle/path in its bag, 30 Hz, 2 mm apart) plus 50 um of noise per coordinate to
+~needle/measured_shape (geometry_msgs/PoseArray, the last pose at the tip). The node
+(assimilation.test) starts from the nominal value and adopts its estimates.
 
 Asserted:
 - the last estimate (the samples up to the scene's end) within 10 % of the hidden value and
@@ -14,9 +16,15 @@ Asserted:
   does not know, 5 stamped before the first estimate's window closed (stale, sent 1.5 s in),
   5 a second in the future; and 5
   gross outliers (100 times the noise) are rejected by the estimator (outliers >= 5);
+  shapes: 3 with a non-finite point, 3 in the moving base frame, 3 longer than the needle
+  (refused_shape);
+- the shapes are used (rows beyond the force's) and fit their noise: the estimate stays
+  consistent (points taken base first would not be);
 - the estimate's diagnostics entry names the estimate (OK) and the refusals;
-- adoption: the node's own force meets the patient's after the first estimate's ramp, with
-  no jump between two messages beyond the noise;
+- adoption: the node's own force leaves the scene's nominal run's as soon as the first
+  estimate is fitted (before that estimate is published: its target prediction takes
+  seconds), meets the patient's after the ramp, with no jump between two messages beyond the
+  noise;
 - the target's predicted position and covariance in TargetState and its ellipsoid in rviz;
   after ~reset the latched estimate is the new session's (none).
 The same run without the outliers or the bad input gives the same estimate within its std
@@ -37,7 +45,7 @@ import numpy
 import rospy
 import rostest
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import WrenchStamped
+from geometry_msgs.msg import Pose, PoseArray, WrenchStamped
 from needle_sim import paths
 from needle_sim.msg import ParameterEstimate, SimStatus, TargetState
 from std_srvs.srv import Trigger
@@ -45,6 +53,7 @@ from visualization_msgs.msg import MarkerArray
 
 HIDDEN = 0.03
 NOISE = 5e-4
+SHAPE_NOISE = 5e-5
 SCENE = "phantom_insertion_8x4x4.yaml"
 # The insertion alone, the approach at the scene's speed (puncture at 0.3 s) and the cut slowed to
 # 20 mm in 5.7 s: long enough to see an estimate adopted while the tip cuts, however long the
@@ -55,14 +64,33 @@ SETS = ["time.dt=0.002", "time.duration=6.0",
         "targets=[{name: T, point: [0.022, 0.0115, 0.0105], radius: 0.001}]"]
 
 
-def patient(out, exact=None):
-    cmd = [paths.tool(), "run", paths.scene(SCENE), "--out", out, "--quiet", "--set", "interaction.cutting_force=%r" % HIDDEN]
+def nominal(out):
+    """The scene's own run (the node's before it adopts anything): {t: axial force}."""
+    cmd = [paths.tool(), "run", paths.scene(SCENE), "--out", out, "--quiet"]
+    for s in SETS:
+        cmd += ["--set", s]
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    return dict((round(float(r["t"]), 6), float(r["needle_axial_force"]))
+                for r in csv.DictReader(open(os.path.join(out, "timeseries.csv"))))
+
+
+def patient(out, exact=None, shapes=None):
+    cmd = [paths.tool(), "run", paths.scene(SCENE), "--out", out, "--quiet", "--set", "interaction.cutting_force=%r" % HIDDEN,
+           "--out-bag", os.path.join(out, "run.bag")]
     for s in SETS:
         cmd += ["--set", s]
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     rows = list(csv.DictReader(open(os.path.join(out, "timeseries.csv"))))
     if exact is not None:
         exact.extend((float(r["t"]), float(r["needle_axial_force"])) for r in rows)
+    if shapes is not None:
+        import rosbag
+        rng = random.Random(2)
+        with rosbag.Bag(os.path.join(out, "run.bag")) as bag:
+            for _, m, _ in bag.read_messages(topics=["/needle_sim/needle/path"]):
+                pts = [(p.pose.position.x + rng.gauss(0.0, SHAPE_NOISE), p.pose.position.y + rng.gauss(0.0, SHAPE_NOISE),
+                        p.pose.position.z + rng.gauss(0.0, SHAPE_NOISE)) for p in m.poses]
+                shapes.append((m.header.stamp.to_sec(), m.header.frame_id, pts))
     rng = random.Random(1)
     return [(float(r["t"]), float(r["needle_axial_force"]) + rng.gauss(0.0, NOISE)) for r in rows[4::5]]
 
@@ -70,8 +98,11 @@ def patient(out, exact=None):
 class Assimilation(unittest.TestCase):
     def test_the_node_recovers_the_hidden_cutting_force(self):
         tmp = tempfile.mkdtemp(prefix="assim_rostest_")
-        patient_force = []
-        samples = patient(os.path.join(tmp, "truth"), patient_force)
+        patient_force, shapes = [], []
+        samples = patient(os.path.join(tmp, "truth"), patient_force, shapes)
+        scene_force = nominal(os.path.join(tmp, "nominal"))
+        self.assertGreater(len(shapes), 150)
+        self.assertEqual(len(shapes[0][2]), 17)  # 16 elements: 17 nodes, 2 mm apart
         lock = threading.Lock()
         st = {"origin": None, "t": 0.0, "estimates": [], "diag": None, "wrench": [], "first_at": None}
 
@@ -105,10 +136,12 @@ class Assimilation(unittest.TestCase):
         rospy.Subscriber("/diagnostics", DiagnosticArray, on_diag)
         rospy.Subscriber("needle_sim/needle/wrench", WrenchStamped, on_wrench, queue_size=1000)
         pub = rospy.Publisher("needle_sim/needle/measured_wrench", WrenchStamped, queue_size=100)
+        shape_pub = rospy.Publisher("needle_sim/needle/measured_shape", PoseArray, queue_size=100)
         deadline = time.time() + 30
-        while time.time() < deadline and pub.get_num_connections() == 0:
+        while time.time() < deadline and (pub.get_num_connections() == 0 or shape_pub.get_num_connections() == 0):
             time.sleep(0.05)
         self.assertGreater(pub.get_num_connections(), 0, "the node does not subscribe ~needle/measured_wrench")
+        self.assertGreater(shape_pub.get_num_connections(), 0, "the node does not subscribe ~needle/measured_shape")
 
         # The node began the scene at its start: a new session from now (the estimator restarts
         # with it), so that every sample arrives in time.
@@ -135,9 +168,21 @@ class Assimilation(unittest.TestCase):
             m.wrench.force.x = fx
             pub.publish(m)
 
+        def send_shape(t, frame, pts, origin):
+            m = PoseArray()
+            m.header.frame_id = frame
+            m.header.stamp = rospy.Time.from_sec(origin + t)
+            for x, y, z in pts:
+                p = Pose()
+                p.position.x, p.position.y, p.position.z = x, y, z
+                p.orientation.w = 1.0
+                m.poses.append(p)
+            shape_pub.publish(m)
+
         used, bad = [], {"non_finite": 0, "frame": 0, "stale": 0, "future": 0}
+        bad_shape = {"non_finite": 0, "frame": 0, "shape": 0}
         outliers = 0
-        i = 0
+        i = j = 0
         deadline = time.time() + 60
         while i < len(samples) and time.time() < deadline:
             with lock:
@@ -147,6 +192,19 @@ class Assimilation(unittest.TestCase):
                 continue
             if i == 0:
                 self.assertLess(now, 0.3, "the first status after ~reset is late: samples would be stale")
+            while j < len(shapes) and shapes[j][0] <= now:
+                t, frame, pts = shapes[j]
+                send_shape(t, frame, pts, origin)
+                if j % 20 == 3 and bad_shape["non_finite"] < 3:
+                    send_shape(t + 1e-4, frame, pts[:5] + [(float("nan"), 0.0, 0.0)] + pts[6:], origin)
+                    bad_shape["non_finite"] += 1
+                if j % 20 == 9 and bad_shape["frame"] < 3:
+                    send_shape(t + 1e-4, "needle_base", pts, origin)
+                    bad_shape["frame"] += 1
+                if j % 20 == 15 and bad_shape["shape"] < 3:
+                    send_shape(t + 1e-4, frame, pts[:1] + pts, origin)  # 18 poses 2 mm apart: 34 mm, the needle 32
+                    bad_shape["shape"] += 1
+                j += 1
             while i < len(samples) and samples[i][0] <= now:
                 t, f = samples[i]
                 if i % 40 == 7 and outliers < 5:
@@ -174,6 +232,7 @@ class Assimilation(unittest.TestCase):
             time.sleep(0.002)
         self.assertEqual(i, len(samples), "the node's clock did not reach the scene's end")
         self.assertEqual(bad, {"non_finite": 5, "frame": 5, "stale": 5, "future": 5})
+        self.assertEqual(bad_shape, {"non_finite": 3, "frame": 3, "shape": 3})
         # The last estimate: the samples up to the end (t >= 5.9 s).
         last = None
         deadline = time.time() + 120
@@ -193,7 +252,16 @@ class Assimilation(unittest.TestCase):
         self.assertLess(abs(v - HIDDEN), 3 * s)
         self.assertTrue(last.consistent)
         self.assertGreaterEqual(last.outliers, 5)
-        self.assertGreaterEqual(last.rejected, 20)
+        self.assertGreaterEqual(last.rejected, 29)
+        # The shapes' rows besides the force's (the shapes at 30 Hz, the force at 100 Hz; a few share a time).
+        self.assertGreater(last.samples, len(used) + 100)
+        # The innovations per sensor, each in its units: the last samples against the estimate
+        # before them are within their noise (plus the outliers' share); no tip subscribed.
+        rospy.loginfo("innovations: force %.3g N, shape %.3g m", last.innovation_force, last.innovation_shape)
+        self.assertLess(last.innovation_shape, 1.5 * SHAPE_NOISE)
+        self.assertGreater(last.innovation_shape, 0.5 * SHAPE_NOISE)
+        self.assertTrue(math.isfinite(last.innovation_force))
+        self.assertTrue(math.isnan(last.innovation_tip) and math.isnan(last.innovation_target))
         self.assertEqual(last.units, "N")
         # The tool on the good samples alone: the bad input did not move the estimate.
         data = os.path.join(tmp, "force.csv")
@@ -224,6 +292,9 @@ class Assimilation(unittest.TestCase):
         self.assertIn("interaction.cutting_force", d.message)
         for rule in ("non_finite", "frame", "stale", "future"):
             self.assertGreaterEqual(int(kv["refused_" + rule]), 5, rule)
+        self.assertGreaterEqual(int(kv["refused_non_finite"]), 8)
+        self.assertGreaterEqual(int(kv["refused_frame"]), 8)
+        self.assertEqual(int(kv["refused_shape"]), 3)
 
         # Adoption: the live simulation took the estimates (ramped over ~assimilation/adopt_ramp,
         # 0.5 s): its own force meets the patient's while the tip cuts (the scene's 20 mN would
@@ -234,9 +305,16 @@ class Assimilation(unittest.TestCase):
             wrench, first_at = sorted(st["wrench"]), st["first_at"]
         truth = dict((round(t, 6), f) for t, f in patient_force)
         rospy.loginfo("estimates (arrived at, t, value, std, consistent, wall): %s", st.get("arrivals"))
-        rospy.loginfo("first adopted estimate arrived at t = %s s of the simulation; %d wrench messages", first_at, len(wrench))
         self.assertIsNotNone(first_at)
-        settled = first_at + 0.5 + 0.05
+        # The adoption's start: where the node's force first leaves the scene's own run's (by
+        # 1 mN, twice the noise; before it the two are the same run).
+        left = [t for t, f in wrench if t >= 0.35 and round(t, 6) in scene_force and abs(f - scene_force[round(t, 6)]) > 1e-3]
+        self.assertTrue(left, "the node's force never left the scene's nominal run's: nothing adopted")
+        adopted_at = left[0]
+        rospy.loginfo("first adopted estimate arrived at t = %s s of the simulation, its adoption began at t = %.3f s; "
+                      "%d wrench messages", first_at, adopted_at, len(wrench))
+        self.assertLess(adopted_at, first_at - 0.2, "the estimate was not adopted before its target prediction")
+        settled = adopted_at + 0.5 + 0.05
         self.assertLess(settled, 5.0, "the first estimate came too late to see its adoption while the tip cuts")
         gaps = [abs(f - truth[round(t, 6)]) for t, f in wrench if settled <= t <= 5.95 and round(t, 6) in truth]
         self.assertGreater(len(gaps), 20)

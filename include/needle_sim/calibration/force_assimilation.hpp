@@ -34,6 +34,7 @@
 // deviation). Without it the covariance has the rank of the keys' (below 3 for one or two keys:
 // flat), and says nothing of the mesh.
 #include <cmath>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -42,12 +43,17 @@
 
 namespace needle_sim {
 
+struct AssimilationCheckpoint;
+
 struct AssimilationSettings {
   CalibrationSettings fit;  // scene, sets, keys (starts: the nominal values), needle, commands, noise
   double every = 0;         // checkpoint spacing [s of data]; <= 0: a tenth of the data's span
   double outlier_gate = 10; // residual / noise beyond which a sample is rejected
   bool predict_targets = true;
   bool target_errors = false;  // add the discretisation bound at the end to the targets' covariance
+  // Called at each checkpoint once the parameters are fitted (values, stds, consistency,
+  // innovations set), before the targets' prediction is run (the node adopts them then).
+  std::function<void(const AssimilationCheckpoint&)> on_fit;
 };
 
 struct AssimilationCheckpoint {
@@ -59,6 +65,9 @@ struct AssimilationCheckpoint {
   std::vector<double> roughness; // per key (CalibrationResult::roughness): above kRoughness, std floored
   double rms = 0;                // RMS residual at the fit
   double innovation_rms = 0;     // the new samples against the previous estimate's prediction
+  // ... per sensor, in its own units: RMS of measured - predicted per value (the force [N]; a
+  // coordinate of the tip, the measured targets, the shape's points [m]); NaN: no new sample.
+  double innovation_force = NAN, innovation_tip = NAN, innovation_target = NAN, innovation_shape = NAN;
   bool consistent = true;        // rms <= 1.5 noise (or too few samples to tell)
   int evaluations = 0;           // simulations of the fit, its Jacobian and the target prediction
   double wall_s = 0;
@@ -82,6 +91,11 @@ struct AssimilationSample {
   // model's with the offset estimated before the sample arrived), rejected.
   std::vector<Vec3> target_measured, target_predicted;
   std::vector<char> target_rejected;
+  // A measured shape (ForceRecord::shape: points back from the tip; empty: none in the row),
+  // its prediction, rejected (all its points, when one is an outlier).
+  std::vector<Vec3> shape_measured, shape_predicted;
+  bool shape_rejected = false;
+  bool hasShape() const { return !shape_measured.empty(); }
   bool hasForce() const { return std::isfinite(measured); }
   bool hasTip() const { return tip_measured.allFinite(); }
   bool hasTarget(size_t j) const { return j < target_measured.size() && target_measured[j].allFinite(); }
@@ -122,7 +136,8 @@ class ForceAssimilation {
  private:
   void checkpoint(double t);
   bool stated() const { return !std::isnan(w_.noise); }
-  SimulatedForce run(const std::vector<double>& v, double until, bool target_errors = false) const;
+  // shape: the needle's centre line at the data's shape points, every step.
+  SimulatedForce run(const std::vector<double>& v, double until, bool target_errors = false, bool shape = false) const;
   double end() const;  // the time a run "to the end" stops at
 
   AssimilationSettings s_;
@@ -134,6 +149,7 @@ class ForceAssimilation {
   double every_ = 0, next_ = 0, fitted_until_ = -1;
   long outliers_ = 0;
   SimulatedForce prediction_;  // the latest estimate's run over the whole scene
+  double predicted_until_ = 0; // ... the time it was run to
   std::vector<Vec3> offsets_;  // the measured targets' latest offsets (NaN: none yet)
 };
 

@@ -76,6 +76,9 @@ struct CalibrationSettings {
   // mean of measured - simulated, profiled out of the cost), so the target's samples inform the
   // keys through its motion only.
   double target_noise = std::numeric_limits<double>::quiet_NaN();
+  // A measured shape's noise (standard deviation per coordinate of each point [m]), weighed as
+  // the tip's.
+  double shape_noise = std::numeric_limits<double>::quiet_NaN();
   // A recorded session's commands (a bag): they drive the needle through the command guard
   // instead of the scene's motion. Empty: the scene's motion.
   std::vector<RecordedCommand> commands;
@@ -95,6 +98,10 @@ struct SimulatedForce {
   std::vector<Vec3> tip;         // the needle's tip (observables' NeedleObservation::tip)
   std::vector<std::vector<Vec3>> targets;  // per target, per step: its position
   std::vector<Vec3> target_end;  // the targets' positions at the last step run
+  // With a CentreLineRequest: the needle's centre line at its points, at the steps it asked
+  // for (their times in shape_t); centreLineAt() interpolates.
+  std::vector<double> shape_t;
+  std::vector<std::vector<Vec3>> shape;
   // With target_errors: per target, the goal-oriented bound on each component of its
   // displacement's discretisation error at the last step (TargetError::component_bound);
   // NaN where the estimate failed. Empty otherwise.
@@ -122,7 +129,7 @@ struct CalibrationResult {
   VecX residuals_fit;             // fitted - measured at the samples inside the simulated time
   int residuals = 0;              // residuals (a force sample gives one, a tip sample three)
   // Per residual: its row in the data and its channel (0: force; 1, 2, 3: the tip's x, y, z;
-  // 4 + 3 j + c: target j's coordinate c).
+  // 4 + 3 j + c: target j's coordinate c; -1: a coordinate of a measured shape's point).
   std::vector<int> residual_row, residual_channel;
   // Per target: its estimated offset (measured - simulated, at the fit) [m]; NaN: not measured.
   std::vector<Vec3> target_offsets;
@@ -138,10 +145,10 @@ struct CalibrationResult {
 // covariance's s (NaN: the residuals' own); the tip's residuals are multiplied by tip_weight.
 struct MeasurementWeights {
   double noise = std::numeric_limits<double>::quiet_NaN();
-  double tip_weight = 1, target_weight = 1;
+  double tip_weight = 1, target_weight = 1, shape_weight = 1;
   const char* units = "N";
 };
-// The reference channel: the force, else the tip, else the targets. InputError for a record
+// The reference channel: the force, else the tip, else the targets, else the shape. InputError for a record
 // of several channels without all their noises, or a noise that is not a positive number.
 MeasurementWeights measurementWeights(const CalibrationSettings& s, const ForceRecord& data);
 
@@ -156,11 +163,17 @@ struct CalibrationCancelled : std::runtime_error {
 // One run of the scene with `sets` (later entries win) up to `until` seconds (or its end);
 // with commands, they drive the needle (from its rest pose) for `until` seconds, through a
 // command pipeline with `limits`; with target_errors, the targets' discretisation error bounds
-// at the last step too; cancel set: the run stops at its next step (failed, "cancelled").
+// at the last step too; cancel set: the run stops at its next step (failed, "cancelled");
+// centre_line wanted: the needle's centre line at its points and steps.
 SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<std::string>& sets, int needle,
                                    double until, const std::vector<RecordedCommand>* commands = nullptr,
                                    bool target_errors = false, const CommandLimits& limits = CommandLimits{},
-                                   const std::atomic<bool>* cancel = nullptr);
+                                   const std::atomic<bool>* cancel = nullptr,
+                                   const CentreLineRequest& centre_line = CentreLineRequest{});
+
+// The run's centre line (SimulatedForce::shape) at time x, linearly between the recorded steps
+// (clamped at the ends); empty when none was recorded.
+std::vector<Vec3> centreLineAt(const SimulatedForce& f, double x);
 
 // progress(evaluation, rms [N], values) after every evaluation.
 CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& data,

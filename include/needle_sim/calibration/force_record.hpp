@@ -9,6 +9,8 @@
 // it. And, for a target the caller names (e.g. from an intraoperative image), its measured
 // position `<target>_x`, `_y`, `_z` [m, the scene's frame: the run's target columns]. Sensors
 // at different rates leave a blank cell where they have no sample. Other columns are ignored.
+// A shape sensor's centre line (a fibre-Bragg grating along the needle) comes from the node's
+// ~<needle>/measured_shape only (ForceRecord::shape), not from the CSV.
 #include <array>
 #include <string>
 #include <vector>
@@ -22,10 +24,28 @@ struct ForceRecord {
   std::vector<Vec3> tip;         // empty: no tip channel; else per row, NaN: no tip sample
   // Per target named to the reader: empty (no columns), else per row (NaN: no sample).
   std::vector<std::vector<Vec3>> targets;
+  // A shape sensor's samples: empty (no channel), else per row the needle's centre line at arc
+  // lengths 0, shape_spacing, 2 shape_spacing, ... back from its tip [m, the scene's frame]
+  // (empty: no sample in that row).
+  std::vector<std::vector<Vec3>> shape;
+  double shape_spacing = 0;
   bool hasForce() const;         // a finite force in some row
   bool hasTip() const;
   bool hasTarget(size_t j) const;
   bool hasTargets() const;
+  bool hasShape() const;
+  size_t shapePoints() const;  // the most points in a row
+};
+
+// A run's needle centre line at a measured shape's points (ForceRecord::shape): the arc
+// lengths back from the tip, at the steps around the given times (one step either side: linear
+// interpolation between them is the same as between all steps); no times: every step.
+struct CentreLineRequest {
+  double spacing = 0;
+  size_t points = 0;
+  std::vector<double> times;
+  static CentreLineRequest of(const ForceRecord& r);  // at the record's shape samples
+  bool wanted() const { return points > 0; }
 };
 
 // Rows a measurement stream may carry and an estimator must survive (assimilation): a

@@ -52,6 +52,7 @@ ForceAssimilation::ForceAssimilation(AssimilationSettings s, ForceRecord data) :
     x.t = data_.t[i];
     x.measured = data_.force[i];
     if (!data_.tip.empty()) x.tip_measured = data_.tip[i];
+    if (i < data_.shape.size()) x.shape_measured = data_.shape[i];
     for (const auto& q : data_.targets) {
       x.target_measured.push_back(q.empty() ? Vec3::Constant(NAN) : q[i]);
       x.target_predicted.push_back(Vec3::Zero());
@@ -61,7 +62,10 @@ ForceAssimilation::ForceAssimilation(AssimilationSettings s, ForceRecord data) :
   }
   std::vector<double> v;
   for (const auto& p : params_) v.push_back(p.start);
-  prediction_ = run(v, end());
+  // The nominal run predicts the samples up to the first checkpoint: as far as the data go (a
+  // node's first rows: not the whole scene, which the first estimate would wait for).
+  predicted_until_ = std::min(end(), data_.t.back());
+  prediction_ = run(v, predicted_until_, false, true);
   if (prediction_.failed) throw NumericalError(0, "the simulation fails at the nominal values: " + prediction_.failure);
 }
 
@@ -81,11 +85,16 @@ std::vector<double> ForceAssimilation::values() const {
   return v;
 }
 
-SimulatedForce ForceAssimilation::run(const std::vector<double>& v, double until, bool target_errors) const {
+SimulatedForce ForceAssimilation::run(const std::vector<double>& v, double until, bool target_errors, bool shape) const {
   std::vector<std::string> sets = s_.fit.sets;
   for (const auto& o : parameterSets(params_, v)) sets.push_back(o);
+  CentreLineRequest c;
+  if (shape) {
+    c.points = data_.shapePoints();
+    c.spacing = data_.shape_spacing;
+  }
   return simulateHolderForce(s_.fit.scene, sets, s_.fit.needle, until, &s_.fit.commands, target_errors, s_.fit.limits,
-                             s_.fit.cancel);
+                             s_.fit.cancel, c);
 }
 
 int ForceAssimilation::advance(double t) {
@@ -119,6 +128,10 @@ void ForceAssimilation::append(const ForceRecord& rows) {
       data_.tip.push_back(i < rows.tip.size() ? rows.tip[i] : Vec3::Constant(NAN));
       x.tip_measured = data_.tip.back();
     }
+    if (!data_.shape.empty()) {
+      data_.shape.push_back(i < rows.shape.size() ? rows.shape[i] : std::vector<Vec3>{});
+      x.shape_measured = data_.shape.back();
+    }
     for (size_t j = 0; j < data_.targets.size(); ++j) {
       Vec3 q = Vec3::Constant(NAN);
       if (!data_.targets[j].empty()) {
@@ -146,13 +159,24 @@ void ForceAssimilation::checkpoint(double t) {
   const size_t n = params_.size();
   // Streaming: the last estimate's run stopped where the commands did then; the new samples
   // are predicted by it run over the commands as they are now.
-  if (!s_.fit.commands.empty() && !prediction_.t.empty() && prediction_.t.back() + 1e-9 < t) {
-    prediction_ = run(values(), end(), false);
+  // A shape sample with more points than the prediction's centre line (the first ones
+  // streamed) needs it again, too.
+  size_t shape_points = 0;
+  for (const auto& x : samples_)
+    if (x.t > fitted_until_ + 1e-12 && x.t <= t + 1e-12) shape_points = std::max(shape_points, x.shape_measured.size());
+  const size_t predicted_points = prediction_.shape.empty() ? 0 : prediction_.shape.front().size();
+  if ((!s_.fit.commands.empty() && !prediction_.t.empty() && prediction_.t.back() + 1e-9 < t) ||
+      predicted_until_ + 1e-9 < t || shape_points > predicted_points) {
+    predicted_until_ = end();
+    prediction_ = run(values(), predicted_until_, false, true);
     if (prediction_.failed) throw NumericalError(0, "the simulation fails at the estimate: " + prediction_.failure);
   }
   // The samples that arrived since the last checkpoint, predicted before they are used.
   int fresh = 0, fresh_values = 0;
   double innovation2 = 0;
+  // Per sensor (force, tip, targets, shape): the sum of squared differences and the values.
+  double sensor2[4] = {0, 0, 0, 0};
+  int sensor_n[4] = {0, 0, 0, 0};
   const PointSeries tip(prediction_.tip);
   std::vector<PointSeries> target;
   for (const auto& q : prediction_.targets) target.emplace_back(q);
@@ -164,11 +188,15 @@ void ForceAssimilation::checkpoint(double t) {
         x.predicted = interpolate(prediction_.t, prediction_.force, x.t);
         innovation2 += (x.measured - x.predicted) * (x.measured - x.predicted);
         ++fresh_values;
+        sensor2[0] += (x.measured - x.predicted) * (x.measured - x.predicted);
+        ++sensor_n[0];
       }
       if (x.hasTip()) {
         x.tip_predicted = tip.at(prediction_.t, x.t);
         innovation2 += w_.tip_weight * w_.tip_weight * (x.tip_measured - x.tip_predicted).squaredNorm();
         fresh_values += 3;
+        sensor2[1] += (x.tip_measured - x.tip_predicted).squaredNorm();
+        sensor_n[1] += 3;
       }
       for (size_t j = 0; j < x.target_measured.size(); ++j)
         if (x.hasTarget(j) && j < target.size()) {
@@ -177,7 +205,20 @@ void ForceAssimilation::checkpoint(double t) {
           x.target_predicted[j] = target[j].at(prediction_.t, x.t) + offset;
           innovation2 += w_.target_weight * w_.target_weight * (x.target_measured[j] - x.target_predicted[j]).squaredNorm();
           fresh_values += 3;
+          sensor2[2] += (x.target_measured[j] - x.target_predicted[j]).squaredNorm();
+          sensor_n[2] += 3;
         }
+      if (x.hasShape()) {
+        x.shape_predicted = centreLineAt(prediction_, x.t);
+        x.shape_predicted.resize(x.shape_measured.size(), Vec3::Constant(NAN));
+        for (size_t q = 0; q < x.shape_measured.size(); ++q) {
+          const double d2 = (x.shape_measured[q] - x.shape_predicted[q]).squaredNorm();
+          innovation2 += w_.shape_weight * w_.shape_weight * d2;
+          sensor2[3] += d2;
+        }
+        fresh_values += 3 * static_cast<int>(x.shape_measured.size());
+        sensor_n[3] += 3 * static_cast<int>(x.shape_measured.size());
+      }
     }
   // The window: the samples up to t, less the rejected channels; rows[i]: its sample.
   std::vector<size_t> rows;
@@ -188,20 +229,23 @@ void ForceAssimilation::checkpoint(double t) {
     values_in_window = 0;
     const bool tip = !data_.tip.empty();
     w.targets.resize(data_.targets.size());
+    w.shape_spacing = data_.shape_spacing;
     for (size_t i = 0; i < samples_.size(); ++i) {
       const auto& x = samples_[i];
       const bool f = x.hasForce() && !x.rejected, p = x.hasTip() && !x.tip_rejected;
+      const bool c = x.hasShape() && !x.shape_rejected;
       int targets = 0;
       for (size_t j = 0; j < x.target_measured.size(); ++j) targets += x.hasTarget(j) && !x.target_rejected[j];
-      if (x.t > t + 1e-12 || !(f || p || targets)) continue;
+      if (x.t > t + 1e-12 || !(f || p || c || targets)) continue;
       w.t.push_back(x.t);
       w.force.push_back(f ? x.measured : NAN);
       if (tip) w.tip.push_back(p ? x.tip_measured : Vec3::Constant(NAN));
+      if (!data_.shape.empty()) w.shape.push_back(c ? x.shape_measured : std::vector<Vec3>{});
       for (size_t j = 0; j < data_.targets.size(); ++j)
         if (!data_.targets[j].empty())
           w.targets[j].push_back(x.hasTarget(j) && !x.target_rejected[j] ? x.target_measured[j] : Vec3::Constant(NAN));
       rows.push_back(i);
-      values_in_window += (f ? 1 : 0) + (p ? 3 : 0) + 3 * static_cast<size_t>(targets);
+      values_in_window += (f ? 1 : 0) + (p ? 3 : 0) + 3 * static_cast<size_t>(targets) + (c ? 3 * x.shape_measured.size() : 0);
     }
     return w;
   };
@@ -241,9 +285,13 @@ void ForceAssimilation::checkpoint(double t) {
       AssimilationSample& x = samples_[rows[static_cast<size_t>(r.residual_row[static_cast<size_t>(j)])]];
       const int channel = r.residual_channel[static_cast<size_t>(j)];
       const size_t target = channel >= 4 ? static_cast<size_t>((channel - 4) / 3) : 0;
-      const bool already = channel == 0 ? x.rejected : channel <= 3 ? x.tip_rejected : x.target_rejected[target] != 0;
+      const bool already = channel < 0    ? x.shape_rejected
+                           : channel == 0 ? x.rejected
+                           : channel <= 3 ? x.tip_rejected
+                                          : x.target_rejected[target] != 0;
       if (!already) {  // a point's sample once, whichever of its coordinates is off
-        if (channel == 0) x.rejected = true;
+        if (channel < 0) x.shape_rejected = true;
+        else if (channel == 0) x.rejected = true;
         else if (channel <= 3) x.tip_rejected = true;
         else x.target_rejected[target] = 1;
         ++outliers_;
@@ -266,6 +314,9 @@ void ForceAssimilation::checkpoint(double t) {
   k.roughness = r.roughness;
   k.rms = r.rms;
   k.innovation_rms = fresh_values ? std::sqrt(innovation2 / fresh_values) : 0.0;
+  double* by_sensor[4] = {&k.innovation_force, &k.innovation_tip, &k.innovation_target, &k.innovation_shape};
+  for (int c = 0; c < 4; ++c)
+    if (sensor_n[c]) *by_sensor[c] = std::sqrt(sensor2[c] / sensor_n[c]);
   k.consistent = !stated() || k.samples < 10 || r.rms <= 1.5 * w_.noise;
   // The residuals' own scale, s^2 = RSS / (m - n - offsets).
   const double own = std::sqrt(r.residuals_fit.squaredNorm() / std::max(1, r.residuals - static_cast<int>(n) - r.offset_parameters));
@@ -283,9 +334,13 @@ void ForceAssimilation::checkpoint(double t) {
   }
   k.target_offset = r.target_offsets;
   offsets_ = r.target_offsets;
+  // The parameters are known: a consumer may take them now, before the targets' prediction
+  // (whole-scene runs, most of a checkpoint's time when the window is short).
+  if (s_.on_fit) s_.on_fit(k);
 
   // The scene to its end with the estimate: the next samples' prediction and the targets'.
-  prediction_ = run(k.values, end(), s_.target_errors && s_.predict_targets);
+  predicted_until_ = end();
+  prediction_ = run(k.values, predicted_until_, s_.target_errors && s_.predict_targets, true);
   ++evaluations;
   if (prediction_.failed) throw NumericalError(0, "the simulation fails at the estimate: " + prediction_.failure);
   const size_t nt = prediction_.target_end.size();

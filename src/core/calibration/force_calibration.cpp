@@ -10,6 +10,7 @@
 #include <cstdio>
 #include <future>
 
+#include "needle_sim/contact/centre_line.hpp"
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/scene/scene_keys.hpp"
 #include "needle_sim/core/types.hpp"
@@ -150,36 +151,45 @@ MeasurementWeights measurementWeights(const CalibrationSettings& s, const ForceR
   check(s.noise, "--noise", "force measurement's noise (standard deviation, N)");
   check(s.tip_noise, "--tip-noise", "tip measurement's noise (standard deviation per coordinate, m)");
   check(s.target_noise, "--target-noise", "target measurement's noise (standard deviation per coordinate, m)");
+  check(s.shape_noise, "shape_noise", "shape measurement's noise (standard deviation per coordinate, m)");
   MeasurementWeights w;
-  const bool force = data.hasForce(), tip = data.hasTip(), target = data.hasTargets();
-  if (force + tip + target > 1) {
+  const bool force = data.hasForce(), tip = data.hasTip(), target = data.hasTargets(), shape = data.hasShape();
+  if (shape && !(data.shape_spacing > 0 && std::isfinite(data.shape_spacing)))
+    throw InputError("", "shape_spacing", "a measured shape needs the spacing of its points, a positive number [m]");
+  if (force + tip + target + shape > 1) {
     // Several channels: each weighed by the reference channel's noise over its own.
     const auto need = [](double v, const char* option) {
       if (std::isnan(v))
-        throw InputError("", option, "a record of several channels (force, tip, target) needs each one's noise to weigh them: "
-                                     "--noise [N], --tip-noise [m], --target-noise [m]");
+        throw InputError("", option, "a record of several channels (force, tip, target, shape) needs each one's noise to "
+                                     "weigh them: --noise [N], --tip-noise [m], --target-noise [m], the shape's [m]");
     };
     if (force) need(s.noise, "--noise");
     if (tip) need(s.tip_noise, "--tip-noise");
     if (target) need(s.target_noise, "--target-noise");
+    if (shape) need(s.shape_noise, "shape_noise");
   }
   if (force) {
     w.noise = s.noise;
   } else if (tip) {
     w.noise = s.tip_noise;
     w.units = "m";
-  } else {
+  } else if (target) {
     w.noise = s.target_noise;
+    w.units = "m";
+  } else {
+    w.noise = s.shape_noise;
     w.units = "m";
   }
   if (tip && !std::isnan(w.noise)) w.tip_weight = w.noise / s.tip_noise;
   if (target && !std::isnan(w.noise)) w.target_weight = w.noise / s.target_noise;
+  if (shape && !std::isnan(w.noise)) w.shape_weight = w.noise / s.shape_noise;
   return w;
 }
 
 SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<std::string>& sets, int needle,
                                    double until, const std::vector<RecordedCommand>* commands, bool target_errors,
-                                   const CommandLimits& limits, const std::atomic<bool>* cancel) {
+                                   const CommandLimits& limits, const std::atomic<bool>* cancel,
+                                   const CentreLineRequest& centre_line) {
   SimulatedForce r;
   Scene sc = loadScene(scene, sets);
   if (needle < 0 || needle >= static_cast<int>(sc.needles.size()))
@@ -202,6 +212,14 @@ SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<s
     const BasePose p0 = sim.needle(needle).trajectory().pose(0);
     const long steps = std::min(sc.numSteps(), static_cast<long>(std::ceil(until / sc.dt - 1e-9)) + 1);
     Observables o;
+    // The centre line's steps: those within one step of a requested time (the times sorted).
+    std::vector<double> times = centre_line.times;
+    std::sort(times.begin(), times.end());
+    const auto near = [&](double t) {
+      if (times.empty()) return true;
+      const auto it = std::lower_bound(times.begin(), times.end(), t - sc.dt * (1 + 1e-9));
+      return it != times.end() && *it <= t + sc.dt * (1 + 1e-9);
+    };
     for (long k = 0; k < steps; ++k) {
       if (cancel && cancel->load(std::memory_order_relaxed)) {
         r.failed = true;
@@ -218,6 +236,16 @@ SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<s
       r.targets.resize(o.targets.size());
       for (size_t j = 0; j < o.targets.size(); ++j) r.targets[j].push_back(o.targets[j].position);
       r.advance.push_back((b.position - p0.position).dot(p0.direction));
+      if (centre_line.wanted() && (k == 0 || k + 1 == steps || near(o.time))) {
+        // Arc length i spacing back from the tip (rest arc length: the beam barely stretches).
+        const NeedleBody& nd = sim.needle(needle);
+        const double length = nd.beam().elementLength() * nd.beam().numElements();
+        std::vector<Vec3> c(centre_line.points);
+        for (size_t i = 0; i < c.size(); ++i)
+          c[i] = centreLinePoint(nd, std::max(0.0, length - static_cast<double>(i) * centre_line.spacing)).position;
+        r.shape_t.push_back(o.time);
+        r.shape.push_back(std::move(c));
+      }
       if (!std::isfinite(r.force.back())) throw NumericalError(k, "non-finite holder force");
     }
     for (const TargetObservation& t : o.targets) r.target_end.push_back(t.position);
@@ -231,6 +259,17 @@ SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<s
   return r;
 }
 
+std::vector<Vec3> centreLineAt(const SimulatedForce& f, double x) {
+  if (f.shape.empty()) return {};
+  if (x <= f.shape_t.front()) return f.shape.front();
+  if (x >= f.shape_t.back()) return f.shape.back();
+  const size_t i = static_cast<size_t>(std::upper_bound(f.shape_t.begin(), f.shape_t.end(), x) - f.shape_t.begin());
+  const double w = (x - f.shape_t[i - 1]) / (f.shape_t[i] - f.shape_t[i - 1]);
+  std::vector<Vec3> c(f.shape[i].size());
+  for (size_t k = 0; k < c.size(); ++k) c[k] = (1 - w) * f.shape[i - 1][k] + w * f.shape[i][k];
+  return c;
+}
+
 namespace {
 
 struct Problem {
@@ -241,6 +280,7 @@ struct Problem {
   std::vector<CalibrationParameter> p;
   std::vector<double> scale;
   double until = 0, penalty = 0;
+  CentreLineRequest shape;  // the data's shape samples' points and times
   int samples = 0;  // measured samples inside the simulated time
   int evaluations = 0, failed = 0;
   double best = std::numeric_limits<double>::infinity();
@@ -255,7 +295,7 @@ struct Problem {
     std::vector<std::string> sets = s->sets;
     for (const auto& o : parameterSets(p, v)) sets.push_back(o);
     try {
-      return simulateHolderForce(s->scene, sets, s->needle, until, &s->commands, false, s->limits, s->cancel);
+      return simulateHolderForce(s->scene, sets, s->needle, until, &s->commands, false, s->limits, s->cancel, shape);
     } catch (const InputError& e) {  // a combination the scene rejects: a penalised point
       SimulatedForce f;
       f.failed = true;
@@ -310,6 +350,14 @@ struct Problem {
             r.push_back(w.target_weight * (at[j][i][k] + offset[j][k] - data->targets[j][i][k]));
             if (rows) rows->push_back(static_cast<int>(i)), channels->push_back(4 + 3 * static_cast<int>(j) + k);
           }
+      if (i < data->shape.size() && !data->shape[i].empty()) {
+        const std::vector<Vec3> c = centreLineAt(f, data->t[i]);
+        for (size_t q = 0; q < data->shape[i].size() && q < c.size(); ++q)
+          for (int k = 0; k < 3; ++k) {
+            r.push_back(w.shape_weight * (c[q][k] - data->shape[i][q][k]));
+            if (rows) rows->push_back(static_cast<int>(i)), channels->push_back(-1);
+          }
+      }
     }
     return Eigen::Map<const VecX>(r.data(), static_cast<Eigen::Index>(r.size()));
   }
@@ -367,6 +415,7 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
   r.parameters = pr.p;
   const Scene sc = loadScene(s.scene, s.sets);
   pr.until = s.commands.empty() ? std::min(sc.duration, data.t.back()) : data.t.back();
+  pr.shape = CentreLineRequest::of(data);
   const size_t n = pr.p.size();
   std::vector<double> x(n), lb(n), ub(n), step(n);
   for (size_t i = 0; i < n; ++i) {
@@ -401,6 +450,9 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
     for (const auto& q : data.targets)
       if (!q.empty() && q[i].allFinite())
         for (int k = 0; k < 3; ++k) measured.push_back(pr.w.target_weight * q[i][k]);
+    if (i < data.shape.size())
+      for (const Vec3& q : data.shape[i])
+        for (int k = 0; k < 3; ++k) measured.push_back(pr.w.shape_weight * q[k]);
   }
   pr.penalty = 100 * std::max(r0.squaredNorm(), Eigen::Map<const VecX>(measured.data(), static_cast<Eigen::Index>(measured.size())).squaredNorm());
 

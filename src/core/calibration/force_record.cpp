@@ -42,6 +42,25 @@ bool ForceRecord::hasTip() const { return anyFinite(tip); }
 
 bool ForceRecord::hasTarget(size_t j) const { return j < targets.size() && anyFinite(targets[j]); }
 
+bool ForceRecord::hasShape() const {
+  return std::any_of(shape.begin(), shape.end(), [](const std::vector<Vec3>& c) { return !c.empty(); });
+}
+
+size_t ForceRecord::shapePoints() const {
+  size_t n = 0;
+  for (const auto& c : shape) n = std::max(n, c.size());
+  return n;
+}
+
+CentreLineRequest CentreLineRequest::of(const ForceRecord& r) {
+  CentreLineRequest q;
+  q.points = r.shapePoints();
+  q.spacing = r.shape_spacing;
+  for (size_t i = 0; i < r.shape.size() && i < r.t.size(); ++i)
+    if (!r.shape[i].empty()) q.times.push_back(r.t[i]);
+  return q;
+}
+
 bool ForceRecord::hasTargets() const {
   for (size_t j = 0; j < targets.size(); ++j)
     if (hasTarget(j)) return true;
