@@ -422,7 +422,8 @@ TEST(Adaptivity, BackgroundPassesDecideAsPassesOnTheSteppingThread) {
   EXPECT_LT(d, 0.01 * umax);
 }
 
-// The adaptive phantom insertion (theta 0.3, 2 levels over 8x4x4) against the uniform
+// The adaptive phantom insertion (theta 0.3, 2 levels over 8x4x4; the shipped scene refines
+// 0.4 s ahead of the tip, the first run below does not) against the uniform
 // 32x16x16 run, whose probe displacements (every 10th step) are kept in test/data/reference
 // (the file says how it was produced), and against the uniform 16x8x8 run with more DOFs
 // than it ever has. Outside the contact instant (the puncture is a one-step transient
@@ -433,7 +434,8 @@ TEST(Adaptivity, BackgroundPassesDecideAsPassesOnTheSteppingThread) {
 // run's largest differences are transients where a region coarsened earlier is re-refined
 // late as the tip comes near a probe (p4 at steps 1,180-1,230: 0.01 -> 0.23, back to 0.01 at
 // the refinement); with the paper's element the same schedule gave 0.066 and 0.0075, on a
-// reference 8 % stiffer.
+// reference 8 % stiffer. Refined ahead (shipped): 0.016 outside the puncture and 0.039 at it
+// (0.60 without), 1,878 DOFs.
 TEST(Adaptivity, PhantomInsertionAgreesWithUniform32x16x16) {
 #ifdef NEEDLE_SIM_SANITIZED
   GTEST_SKIP() << "a whole adaptive insertion (2 min under ASan): InsertionReembedsConstraintPointsExactly runs the "
@@ -493,11 +495,12 @@ TEST(Adaptivity, PhantomInsertionAgreesWithUniform32x16x16) {
     a.mean = esum / rows.size();
     return a;
   };
-  const Agreement adaptive = against("phantom_insertion_adaptive.yaml");
+  // The shipped scene without its refinement ahead of the tip: the estimate alone.
+  const Agreement adaptive = against("phantom_insertion_adaptive.yaml", {"adaptivity.lookahead=0"});
   const Agreement uniform = against("phantom_insertion_16x8x8.yaml");
-  // Refined ahead of the tip over the trajectory's next 0.4 s (#38 item 3): the mesh no longer
-  // lags the tip, nor the entry point the touch.
-  const Agreement ahead = against("phantom_insertion_adaptive.yaml", {"adaptivity.lookahead=0.4"});
+  // The shipped scene: refined ahead of the tip over the trajectory's next 0.4 s (#38 item 3),
+  // the mesh no longer lags the tip, nor the entry point the touch.
+  const Agreement ahead = against("phantom_insertion_adaptive.yaml");
   ASSERT_GT(umax, 0);
   std::printf("against 32x16x16: adaptive max %.4f, time-mean %.4f of the largest probe displacement, max %d tissue DOFs; "
               "uniform 16x8x8 %.4f, %.4f, %d DOFs\n",
@@ -509,7 +512,7 @@ TEST(Adaptivity, PhantomInsertionAgreesWithUniform32x16x16) {
   EXPECT_LT(adaptive.mean, 0.2 * uniform.mean);
   EXPECT_LT(adaptive.mean / umax, 0.02);
   EXPECT_LT(adaptive.max_dofs, 28611 / 10);
-  std::printf("with lookahead 0.4 s: max %.4f, at any compared step %.4f (without: %.4f), %d DOFs\n", ahead.max / umax,
+  std::printf("shipped, with lookahead 0.4 s: max %.4f, at any compared step %.4f (without: %.4f), %d DOFs\n", ahead.max / umax,
               ahead.with_puncture / umax, adaptive.with_puncture / umax, ahead.max_dofs);
   EXPECT_LT(ahead.max / umax, 0.02);            // the goal (#38): 2 %
   EXPECT_LT(ahead.with_puncture / umax, 0.10);  // every compared step, the touch's 10 included, within 10 %
