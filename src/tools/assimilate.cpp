@@ -1,5 +1,6 @@
 #include "assimilate.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
@@ -28,6 +29,7 @@ std::unique_ptr<ForceAssimilation> makeAssimilation(const AssimilateOptions& o, 
   s.fit.noise = o.noise;
   s.fit.tip_noise = o.tip_noise;
   s.fit.target_noise = o.target_noise;
+  s.fit.shape_noise = o.shape_noise;
   s.every = o.every;
   s.target_errors = o.target_error;
   if (commands) s.fit.commands = *commands;
@@ -38,7 +40,8 @@ std::unique_ptr<ForceAssimilation> makeAssimilation(const AssimilateOptions& o, 
   } else if (bag_force && !bag_force->t.empty()) {
     data = *bag_force;
   } else {
-    throw InputError("", "--data", "--assimilate needs the measurement: --data FILE.csv, or --bag with --wrench-topic");
+    throw InputError("", "--data", "--assimilate needs the measurement: --data FILE.csv, or --bag with a measurement topic "
+                                     "(--wrench-topic, --tip-topic, --target-topic, --shape-topic)");
   }
   return std::make_unique<ForceAssimilation>(std::move(s), std::move(data));
 }
@@ -102,8 +105,8 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
         f << x.t << ',' << x.measured << ',' << x.predicted << ',' << x.measured - x.predicted << ',' << (x.rejected ? 1 : 0)
         << '\n';
   }
-  bool tip = false, any_target = false;
-  for (const auto& x : a.samples()) tip = tip || x.hasTip();
+  bool tip = false, any_target = false, shape = false;
+  for (const auto& x : a.samples()) tip = tip || x.hasTip(), shape = shape || x.hasShape();
   for (size_t j = 0; j < target_names.size(); ++j) any_target = any_target || measured(j);
   if (any_target) {
     // The measured targets' innovations [m], the scene's frame: a row per target sample.
@@ -133,6 +136,25 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
         f << x.t;
         for (const Vec3* v : {&x.tip_measured, &x.tip_predicted, &d}) f << ',' << (*v)[0] << ',' << (*v)[1] << ',' << (*v)[2];
         f << ',' << (x.tip_rejected ? 1 : 0) << '\n';
+      }
+  }
+  if (shape) {
+    // A shape sensor's innovations [m]: per sample, the RMS over its points and coordinates,
+    // and the largest point's distance.
+    std::ofstream f(out_dir + "/innovation_shape.csv");
+    if (!f) throw std::runtime_error("cannot write " + out_dir + "/innovation_shape.csv");
+    f.precision(10);
+    f << "t,points,innovation_rms,innovation_max,rejected\n";
+    for (const auto& x : a.samples())
+      if (x.arrived && x.hasShape()) {
+        double sum = 0, largest = 0;
+        for (size_t q = 0; q < x.shape_measured.size() && q < x.shape_predicted.size(); ++q) {
+          const double d = (x.shape_measured[q] - x.shape_predicted[q]).norm();
+          sum += d * d;
+          largest = std::max(largest, d);
+        }
+        f << x.t << ',' << x.shape_measured.size() << ',' << std::sqrt(sum / (3.0 * x.shape_measured.size())) << ','
+          << largest << ',' << (x.shape_rejected ? 1 : 0) << '\n';
       }
   }
   nlohmann::json params = nlohmann::json::object();
@@ -170,6 +192,7 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
   if (tip) channels.push_back("tip");
   for (size_t j = 0; j < target_names.size(); ++j)
     if (measured(j)) channels.push_back(target_names[j]);
+  if (shape) channels.push_back("shape");
   int inconsistent = 0;
   for (const auto& k : cps) inconsistent += k.consistent ? 0 : 1;
   const nlohmann::json section = {
@@ -177,6 +200,7 @@ void writeAssimilation(const ForceAssimilation& a, const AssimilateOptions& o, c
       {"noise", finiteOrNull(o.noise)},
       {"tip_noise", finiteOrNull(o.tip_noise)},
       {"target_noise", finiteOrNull(o.target_noise)},
+      {"shape_noise", finiteOrNull(o.shape_noise)},
       {"channels", channels},
       {"residual_units", a.weights().units},
       {"every_s", a.every()},

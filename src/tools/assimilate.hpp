@@ -17,6 +17,7 @@ struct AssimilateOptions {
   double noise = std::numeric_limits<double>::quiet_NaN();  // [N]; NaN: from the residuals
   double tip_noise = std::numeric_limits<double>::quiet_NaN();  // [m] per coordinate, for tip_x,y,z columns
   double target_noise = std::numeric_limits<double>::quiet_NaN();  // [m] per coordinate, for <target>_x,y,z
+  double shape_noise = std::numeric_limits<double>::quiet_NaN();   // [m] per coordinate, a bag's --shape-topic
   double every = 0;                              // checkpoint spacing [s]; 0: a tenth of the data
   bool target_error = false;                     // run --target-error: the bound joins the targets' covariance
   bool given() const { return !keys.empty(); }

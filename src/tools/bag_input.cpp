@@ -1,10 +1,13 @@
 #include "bag_input.hpp"
 
+#include <geometry_msgs/PointStamped.h>
+#include <geometry_msgs/PoseArray.h>
 #include <geometry_msgs/PoseStamped.h>
 #include <geometry_msgs/WrenchStamped.h>
 #include <rosbag/bag.h>
 #include <rosbag/view.h>
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 
@@ -12,42 +15,71 @@
 
 namespace needle_sim {
 
-BagSession readBagSession(const std::string& path, const std::string& pose_topic, const std::string& wrench_topic,
-                          int needle, const std::string& tissue_frame) {
+namespace {
+// A measurement taken from the bag, before the rows are laid out.
+struct Measured {
+  double t = 0;
+  int channel = 0;  // 0 force, 1 tip, 2 target, 3 shape
+  double force = 0;
+  Vec3 point = Vec3::Zero();
+  std::vector<Vec3> shape;  // from the tip back
+};
+}  // namespace
+
+BagSession readBagSession(const std::string& path, const BagTopics& topics, int needle, double needle_length,
+                          const std::string& tissue_frame) {
   rosbag::Bag bag;
   try {
     bag.open(path, rosbag::bagmode::Read);
   } catch (const rosbag::BagException& e) {
     throw InputError(path, "--bag", std::string("cannot read the bag: ") + e.what());
   }
-  std::vector<std::string> topics{pose_topic};
-  if (!wrench_topic.empty()) topics.push_back(wrench_topic);
   auto strip = [](std::string t) { return t.size() > 1 && t[0] == '/' ? t.substr(1) : t; };
+  // (topic, its option, its type), the pose first.
+  struct Topic {
+    std::string name;
+    const char* option;
+    const char* type;
+  };
+  std::vector<Topic> list{{topics.pose, "--pose-topic", "geometry_msgs/PoseStamped"}};
+  if (!topics.wrench.empty()) list.push_back({topics.wrench, "--wrench-topic", "geometry_msgs/WrenchStamped"});
+  if (!topics.tip.empty()) list.push_back({topics.tip, "--tip-topic", "geometry_msgs/PointStamped"});
+  if (!topics.target.empty()) list.push_back({topics.target, "--target-topic", "geometry_msgs/PointStamped"});
+  if (!topics.shape.empty()) list.push_back({topics.shape, "--shape-topic", "geometry_msgs/PoseArray"});
+  if (!topics.shape.empty() && !(topics.shape_spacing > 0 && std::isfinite(topics.shape_spacing)))
+    throw InputError(path, "--shape-spacing", "must be a positive arc length [m]");
   BagSession s;
+  std::vector<Measured> measured;
   try {
     // Each topic present and of its type (rosbag keeps topics with a leading slash or not:
-    // either spelling is accepted).
-    for (size_t k = 0; k < topics.size(); ++k) {
-      const std::string& t = topics[k];
-      const std::string want = k == 0 ? "geometry_msgs/PoseStamped" : "geometry_msgs/WrenchStamped";
-      rosbag::View v(bag, rosbag::TopicQuery(std::vector<std::string>{strip(t), "/" + strip(t)}));
-      if (v.size() == 0) throw InputError(path, t, "no message on this topic in the bag");
-      if (v.begin()->getDataType() != want)
-        throw InputError(path, t, "carries " + v.begin()->getDataType() + ", not " + want);
+    // either spelling is accepted), none given twice.
+    for (const Topic& t : list) {
+      rosbag::View v(bag, rosbag::TopicQuery(std::vector<std::string>{strip(t.name), "/" + strip(t.name)}));
+      if (v.size() == 0) throw InputError(path, t.name, "no message on this topic in the bag");
+      if (v.begin()->getDataType() != t.type)
+        throw InputError(path, t.name, "carries " + v.begin()->getDataType() + ", not " + t.type);
     }
-    if (!wrench_topic.empty() && strip(wrench_topic) == strip(pose_topic))
-      throw InputError(path, wrench_topic, "the same topic as --pose-topic");
+    for (size_t k = 0; k < list.size(); ++k)
+      for (size_t j = 0; j < k; ++j)
+        if (strip(list[j].name) == strip(list[k].name))
+          throw InputError(path, list[k].name, std::string("the same topic as ") + list[j].option);
     std::vector<std::string> query;
-    for (const auto& t : topics) query.push_back("/" + strip(t)), query.push_back(strip(t));
+    for (const auto& t : list) query.push_back("/" + strip(t.name)), query.push_back(strip(t.name));
     rosbag::View view(bag, rosbag::TopicQuery(query));
     const ros::Time origin = view.getBeginTime();
     s.origin = origin.toSec();
+    const auto inTissue = [&](const std::string& frame, const std::string& topic) {
+      if (!frame.empty() && strip(frame) != strip(tissue_frame))
+        throw InputError(path, topic, "a measurement in frame '" + frame + "': give it in the tissue frame '" + tissue_frame + "'");
+    };
     for (const rosbag::MessageInstance& m : view) {
       const double received = (m.getTime() - origin).toSec();
       s.end = std::max(s.end, received);
-      if (strip(m.getTopic()) == strip(pose_topic)) {
+      const std::string topic = strip(m.getTopic());
+      const auto at = [&](const ros::Time& stamp) { return stamp.isZero() ? received : (stamp - origin).toSec(); };
+      if (topic == strip(topics.pose)) {
         const auto p = m.instantiate<geometry_msgs::PoseStamped>();
-        if (!p) throw InputError(path, pose_topic, "carries " + m.getDataType() + ", not geometry_msgs/PoseStamped");
+        if (!p) throw InputError(path, topics.pose, "carries " + m.getDataType() + ", not geometry_msgs/PoseStamped");
         RecordedCommand c;
         c.needle = needle;
         c.received = received;
@@ -62,26 +94,93 @@ BagSession readBagSession(const std::string& path, const std::string& pose_topic
         if (p->header.frame_id.empty()) c.frame_rule = GuardRule::EmptyFrame;
         else if (strip(p->header.frame_id) != strip(tissue_frame)) c.frame_rule = GuardRule::Frame;
         s.commands.push_back(c);
-      } else {
+      } else if (!topics.wrench.empty() && topic == strip(topics.wrench)) {
         const auto w = m.instantiate<geometry_msgs::WrenchStamped>();
-        if (!w) throw InputError(path, wrench_topic, "carries " + m.getDataType() + ", not geometry_msgs/WrenchStamped");
+        if (!w) throw InputError(path, topics.wrench, "carries " + m.getDataType() + ", not geometry_msgs/WrenchStamped");
         const std::string f = w->header.frame_id;
         if (f.size() < 5 || f.substr(f.size() - 5) != "_base")
-          throw InputError(path, wrench_topic,
+          throw InputError(path, topics.wrench,
                            "the wrench is in frame '" + f + "': give it in the needle's base frame (<needle>_base, x along the needle)");
-        const double t = w->header.stamp.isZero() ? received : (w->header.stamp - origin).toSec();
-        if (!s.force.t.empty() && !(t > s.force.t.back())) continue;  // repeated or reordered stamps: keep the first
-        s.force.t.push_back(t);
+        Measured x;
+        x.t = at(w->header.stamp);
         // The sensor's reading as it is: the needle's force on the holder along the needle,
         // the simulation's axial force (observables.hpp).
-        s.force.force.push_back(w->wrench.force.x);
+        x.force = w->wrench.force.x;
+        measured.push_back(x);
+      } else if ((!topics.tip.empty() && topic == strip(topics.tip)) || (!topics.target.empty() && topic == strip(topics.target))) {
+        const bool tip = !topics.tip.empty() && topic == strip(topics.tip);
+        const std::string& name = tip ? topics.tip : topics.target;
+        const auto q = m.instantiate<geometry_msgs::PointStamped>();
+        if (!q) throw InputError(path, name, "carries " + m.getDataType() + ", not geometry_msgs/PointStamped");
+        inTissue(q->header.frame_id, name);
+        Measured x;
+        x.t = at(q->header.stamp);
+        x.channel = tip ? 1 : 2;
+        x.point = Vec3(q->point.x, q->point.y, q->point.z);
+        if (!x.point.allFinite()) throw InputError(path, name, "a non-finite position at t = " + std::to_string(x.t) + " s");
+        measured.push_back(x);
+      } else if (!topics.shape.empty() && topic == strip(topics.shape)) {
+        const auto a = m.instantiate<geometry_msgs::PoseArray>();
+        if (!a) throw InputError(path, topics.shape, "carries " + m.getDataType() + ", not geometry_msgs/PoseArray");
+        inTissue(a->header.frame_id, topics.shape);
+        Measured x;
+        x.t = at(a->header.stamp);
+        x.channel = 3;
+        const size_t n = a->poses.size();
+        if (n == 0) throw InputError(path, topics.shape, "a shape without poses at t = " + std::to_string(x.t) + " s");
+        if (static_cast<double>(n - 1) * topics.shape_spacing > needle_length * (1 + 1e-9))
+          throw InputError(path, topics.shape, std::to_string(n) + " poses at --shape-spacing " + std::to_string(topics.shape_spacing) +
+                                                   " m reach further back than the needle's " + std::to_string(needle_length) + " m");
+        // The last pose is the tip: the record's points run from the tip back.
+        for (size_t i = n; i-- > 0;) {
+          const auto& p = a->poses[i].position;
+          x.shape.emplace_back(p.x, p.y, p.z);
+          if (!x.shape.back().allFinite())
+            throw InputError(path, topics.shape, "a non-finite position at t = " + std::to_string(x.t) + " s");
+        }
+        measured.push_back(std::move(x));
       }
     }
   } catch (const rosbag::BagException& e) {
     throw InputError(path, "--bag", std::string("cannot read the bag: ") + e.what());
   }
-  if (s.commands.empty()) throw InputError(path, pose_topic, "no message on this topic in the bag");
-  if (!wrench_topic.empty() && s.force.t.size() < 2) throw InputError(path, wrench_topic, "fewer than 2 wrench messages");
+  if (s.commands.empty()) throw InputError(path, topics.pose, "no message on this topic in the bag");
+  // One row per time: samples of different sensors at one time share it; per sensor, a sample
+  // not after its previous one (a repeated or reordered stamp) is dropped (the first kept).
+  std::stable_sort(measured.begin(), measured.end(), [](const Measured& a, const Measured& b) { return a.t < b.t; });
+  ForceRecord& r = s.force;
+  const bool tip = !topics.tip.empty(), target = !topics.target.empty(), shape = !topics.shape.empty();
+  if (target) r.targets.assign(static_cast<size_t>(std::max(topics.num_targets, topics.target_index + 1)), {});
+  std::vector<Vec3>* tgt = target ? &r.targets[static_cast<size_t>(topics.target_index)] : nullptr;
+  r.shape_spacing = topics.shape_spacing;
+  double last[4] = {-1e300, -1e300, -1e300, -1e300};
+  long count[4] = {0, 0, 0, 0};
+  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+  for (const Measured& x : measured) {
+    if (!(x.t > last[x.channel])) continue;
+    last[x.channel] = x.t;
+    ++count[x.channel];
+    const bool taken = !r.t.empty() && std::abs(x.t - r.t.back()) < 1e-9 &&
+                       (x.channel == 0   ? std::isfinite(r.force.back())
+                        : x.channel == 1 ? r.tip.back().allFinite()
+                        : x.channel == 2 ? tgt->back().allFinite()
+                                         : !r.shape.back().empty());
+    if (r.t.empty() || x.t > r.t.back() + 1e-9 || taken) {
+      r.t.push_back(r.t.empty() ? x.t : std::max(x.t, r.t.back() + 1e-9));
+      r.force.push_back(kNaN);
+      if (tip) r.tip.push_back(Vec3::Constant(kNaN));
+      if (target) tgt->push_back(Vec3::Constant(kNaN));
+      if (shape) r.shape.emplace_back();
+    }
+    if (x.channel == 0) r.force.back() = x.force;
+    else if (x.channel == 1) r.tip.back() = x.point;
+    else if (x.channel == 2) tgt->back() = x.point;
+    else r.shape.back() = x.shape;
+  }
+  const std::string* names[4] = {&topics.wrench, &topics.tip, &topics.target, &topics.shape};
+  for (int c = 0; c < 4; ++c)
+    if (!names[c]->empty() && count[c] < 2)
+      throw InputError(path, *names[c], "fewer than 2 measurements on this topic");
   return s;
 }
 

@@ -100,7 +100,10 @@ int calibrateCommand(const CalibrateOptions& o) {
   }
   ForceRecord data;
   if (bag) {
-    BagSession session = readBagSession(o.data, o.pose_topic, o.wrench_topic, s.needle);
+    BagTopics topics;
+    topics.pose = o.pose_topic;
+    topics.wrench = o.wrench_topic;
+    BagSession session = readBagSession(o.data, topics, s.needle, scene.needles[s.needle].length);
     data = std::move(session.force);
     s.commands = std::move(session.commands);
   } else {

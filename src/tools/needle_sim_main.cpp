@@ -62,6 +62,9 @@ constexpr int kExitNumerical = 3;
 // A recorded session driving the run (run --bag).
 struct BagRun {
   std::string bag, pose_topic, wrench_topic, needle;
+  // Measurements for --assimilate, as the node's topics take them (bag_input.hpp).
+  std::string tip_topic, target_topic, shape_topic, measured_target;
+  double shape_spacing = 5e-4;
   std::string out_bag, out_ns = "/needle_sim";  // run --out-bag: the outputs as a bag
   bool given() const { return !bag.empty(); }
 };
@@ -86,7 +89,27 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
           if (scene.needles[i].name == bag_run.needle) bag_needle = static_cast<int>(i);
         if (bag_needle < 0) throw InputError(scene_path, "--needle", "no needle named '" + bag_run.needle + "'");
       }
-      session = readBagSession(bag_run.bag, bag_run.pose_topic, bag_run.wrench_topic, bag_needle);
+      BagTopics topics;
+      topics.pose = bag_run.pose_topic;
+      topics.wrench = bag_run.wrench_topic;
+      topics.tip = bag_run.tip_topic;
+      topics.target = bag_run.target_topic;
+      topics.shape = bag_run.shape_topic;
+      topics.shape_spacing = bag_run.shape_spacing;
+      topics.num_targets = static_cast<int>(scene.targets.size());
+      if (!bag_run.target_topic.empty()) {
+        if (scene.targets.empty()) throw InputError(scene_path, "--target-topic", "the scene has no target to measure");
+        topics.target_index = -1;
+        for (size_t j = 0; j < scene.targets.size(); ++j)
+          if (bag_run.measured_target.empty() ? j == 0 : scene.targets[j].name == bag_run.measured_target)
+            topics.target_index = static_cast<int>(j);
+        if (topics.target_index < 0)
+          throw InputError(scene_path, "--measured-target", "no target named '" + bag_run.measured_target + "'");
+      }
+      if (!assimilate.given() && !(topics.tip.empty() && topics.target.empty() && topics.shape.empty()))
+        throw InputError("", topics.tip.empty() ? (topics.target.empty() ? "--shape-topic" : "--target-topic") : "--tip-topic",
+                         "a measured position or shape is for --assimilate KEYS");
+      session = readBagSession(bag_run.bag, topics, bag_needle, scene.needles[bag_needle].length);
       // The recording drives the needle from its rest pose, for as long as it lasts.
       scene.needles[bag_needle].motion.clear();
       scene.duration = std::max(session.end, scene.dt);
@@ -208,7 +231,7 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
         first = false;
       }
     std::printf("%s)\n", first ? "none" : "");
-    if (!session.force.t.empty() && !sim_t.empty()) {
+    if (!bag_run.wrench_topic.empty() && !session.force.t.empty() && !sim_t.empty()) {
       std::ofstream f(out_dir + "/measured_force.csv");
       f << "t,measured_axial_force,simulated_axial_force\n";
       f.precision(10);
@@ -216,6 +239,7 @@ int runCommand(const std::string& scene_path, const std::string& out_dir, const 
       long m = 0;
       for (size_t i = 0; i < session.force.t.size(); ++i) {
         if (session.force.t[i] > sim_t.back()) break;
+        if (!std::isfinite(session.force.force[i])) continue;  // a row of another sensor
         const double fs = interpolate(sim_t, sim_force, session.force.t[i]);
         f << session.force.t[i] << ',' << session.force.force[i] << ',' << fs << '\n';
         se += (fs - session.force.force[i]) * (fs - session.force.force[i]);
@@ -345,6 +369,17 @@ int main(int argc, char** argv) {
   run->add_option("--pose-topic", bag_run.pose_topic, "... on this geometry_msgs/PoseStamped topic (e.g. needle_sim/needle/command_pose)");
   run->add_option("--wrench-topic", bag_run.wrench_topic, "... and compare with the measured geometry_msgs/WrenchStamped on this topic: DIR/measured_force.csv");
   run->add_option("--needle", bag_run.needle, "... for this needle (default: the first)");
+  run->add_option("--tip-topic", bag_run.tip_topic,
+                  "... with --assimilate: a tracked tip (geometry_msgs/PointStamped, tissue frame; --tip-noise)");
+  run->add_option("--target-topic", bag_run.target_topic,
+                  "... with --assimilate: a target's measured position (geometry_msgs/PointStamped, tissue frame; --target-noise)");
+  run->add_option("--measured-target", bag_run.measured_target, "... the target --target-topic measures (default: the first)");
+  run->add_option("--shape-topic", bag_run.shape_topic,
+                  "... with --assimilate: the needle's measured shape (geometry_msgs/PoseArray, tissue frame, the last pose "
+                  "at the tip; --shape-noise, --shape-spacing)");
+  run->add_option("--shape-spacing", bag_run.shape_spacing, "... the arc length between the shape's poses [m]")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
   run->add_option("--out-bag", bag_run.out_bag, "also write the outputs as a rosbag on the node's topics (status, wrenches, targets, paths)");
   run->add_option("--out-bag-ns", bag_run.out_ns, "... under this namespace (the node's name)")->capture_default_str();
   run->add_option("--vtu-every", rec_opts.vtu_every,
@@ -365,6 +400,9 @@ int main(int argc, char** argv) {
       ->check(CLI::PositiveNumber);
   run->add_option("--target-noise", assimilate.target_noise,
                   "... a measured target's noise, a standard deviation per coordinate [m] (columns <target>_x, _y, _z)")
+      ->check(CLI::PositiveNumber);
+  run->add_option("--shape-noise", assimilate.shape_noise,
+                  "... a measured shape's noise, a standard deviation per coordinate of each point [m] (--shape-topic)")
       ->check(CLI::PositiveNumber);
   run->add_option("--assimilate-every", assimilate.every, "... a checkpoint every S seconds of data (default: a tenth)")
       ->check(CLI::PositiveNumber);

@@ -745,6 +745,77 @@ TEST(Cli, RunAssimilateRejectsBadInputsAndWritesItsOutputs) {
   EXPECT_EQ(j.at("status"), "ok");  // the run's own summary is still there
 }
 
+// run --bag with --assimilate from the node's other measurement topics: a tracked tip
+// (PointStamped) and a shape sensor (PoseArray, the last pose at the tip) beside the wrench.
+// The shipped session replayed with its hidden values (30 mN, 400 Pa) gives the needle's beam
+// nodes (its --out-bag's path, 2 mm apart, 30 Hz); with 50 um of noise they are the shape,
+// their last the tip. Read into rows of their own (channels axial_force, tip, shape), the
+// estimate within 10 % of the hidden value and consistent with the three noises, each shape's
+// innovation about its noise. A shape in another frame, a topic of another type or a shape
+// without --assimilate: exit 2, naming it.
+TEST(Cli, RunAssimilatesABagsTipAndShape) {
+#ifdef NEEDLE_SIM_SANITIZED
+  GTEST_SKIP() << "the estimator's runs of the whole session take minutes under the sanitizers";
+#endif
+  const fs::path d = freshDir("assimilate_bag_shape");
+  const std::string scene = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml --set time.dt=0.002";
+  const std::string session = kSrc + "/data/examples/phantom_insertion_session.bag";
+  const fs::path sim_bag = d / "patient.bag", merged = d / "merged.bag", world = d / "world.bag";
+  const Result p = runTool("run " + scene + " --set interaction.cutting_force=0.03 --set interaction.grip_pressure=400 --bag '" +
+                           session + "' --pose-topic needle/command_pose --out-bag '" + sim_bag.string() + "' --quiet --out '" +
+                           (d / "patient").string() + "'");
+  ASSERT_EQ(p.status, 0) << p.err;
+  const std::string py = capture(
+      "/usr/bin/python3 -c \"import random, rosbag\n"
+      "from geometry_msgs.msg import Pose, PoseArray, PointStamped\n"
+      "rng = random.Random(3); n = 0\n"
+      "m = rosbag.Bag('" + merged.string() + "', 'w'); w = rosbag.Bag('" + world.string() + "', 'w')\n"
+      "for tp, x, t in rosbag.Bag('" + session + "').read_messages(): m.write(tp, x, t); w.write(tp, x, t)\n"
+      "for _, path, t in rosbag.Bag('" + sim_bag.string() + "').read_messages(['/needle_sim/needle/path']):\n"
+      "    a = PoseArray(); a.header = path.header\n"
+      "    for q in path.poses:\n"
+      "        p = Pose(); p.orientation.w = 1.0\n"
+      "        p.position.x, p.position.y, p.position.z = [c + rng.gauss(0, 5e-5) for c in (q.pose.position.x, q.pose.position.y, q.pose.position.z)]\n"
+      "        a.poses.append(p)\n"
+      "    tip = PointStamped(); tip.header = path.header; tip.point = a.poses[-1].position\n"
+      "    m.write('needle/shape', a, path.header.stamp); m.write('needle/tip', tip, path.header.stamp); n += 1\n"
+      "    a.header.frame_id = 'world'; w.write('needle/shape', a, path.header.stamp)\n"
+      "m.close(); w.close(); print(n)\"");
+  const int shapes = std::atoi(py.c_str());
+  ASSERT_GT(shapes, 100) << py;
+  const std::string topics = " --pose-topic needle/command_pose --wrench-topic needle/wrench --tip-topic needle/tip "
+                             "--shape-topic needle/shape --shape-spacing 0.002";
+  const std::string estimate = " --assimilate interaction.cutting_force --noise 0.0005 --tip-noise 5e-5 --shape-noise 5e-5 "
+                               "--assimilate-every 10 --quiet --out '";
+  const Result r = runTool("run " + scene + " --bag '" + merged.string() + "'" + topics + estimate + (d / "est").string() + "'");
+  ASSERT_EQ(r.status, 0) << r.err;
+  std::ifstream sj(d / "est" / "summary.json");
+  const nlohmann::json j = nlohmann::json::parse(sj);
+  const auto& a = j.at("assimilation");
+  EXPECT_EQ(a.at("channels"), nlohmann::json({"axial_force", "tip", "shape"}));
+  EXPECT_GT(a.at("samples").get<int>(), 479 + shapes / 2);  // the wrench's rows and most shapes' own
+  EXPECT_TRUE(a.at("consistent").get<bool>());
+  EXPECT_NEAR(a.at("parameters").at("interaction.cutting_force").at("value").get<double>(), 0.03, 0.003);
+  auto in = readColumns(d / "est" / "innovation_shape.csv");
+  ASSERT_GT(in["t"].size(), static_cast<size_t>(shapes / 2));
+  std::vector<double> rms;
+  for (const auto& v : in["innovation_rms"]) rms.push_back(std::stod(v));
+  std::nth_element(rms.begin(), rms.begin() + rms.size() / 2, rms.end());
+  EXPECT_NEAR(rms[rms.size() / 2], 5e-5, 2e-5);
+  EXPECT_EQ(in["points"].front(), "17");
+  for (const auto& [args, why] : std::vector<std::pair<std::string, std::string>>{
+           {" --bag '" + world.string() + "' --pose-topic needle/command_pose --wrench-topic needle/wrench --shape-topic "
+                "needle/shape --shape-spacing 0.002" + estimate + (d / "w").string() + "'", "tissue frame"},
+           {" --bag '" + merged.string() + "' --pose-topic needle/command_pose --shape-topic needle/tip" + estimate +
+                (d / "t").string() + "'", "not geometry_msgs/PoseArray"},
+           {" --bag '" + merged.string() + "' --pose-topic needle/command_pose --shape-topic needle/shape --quiet --out '" +
+                (d / "n").string() + "'", "--assimilate"}}) {
+    const Result b = runTool("run " + scene + args);
+    EXPECT_EQ(b.status, 2) << args;
+    EXPECT_NE(b.err.find(why), std::string::npos) << args << ": " << b.err;
+  }
+}
+
 // run --bag with --assimilate and no --data: the bag's wrench is the measurement and its
 // commanded poses drive the estimator's runs, for as long as the record (not the scene's
 // duration). The shipped session (cutting 30 mN, grip 400 Pa, 0.5 mN of noise).
