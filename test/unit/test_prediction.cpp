@@ -161,10 +161,12 @@ TEST(Prediction, AtTheLiveStepItIsTheLiveRunOfThePlan) {
 // at a 10 ms step and 1.74 % at 5 ms: not the step's own error (it would halve) but the
 // adaptivity's schedule, which counts steps (adaptivity.every_steps), so a prediction at
 // another step changes its mesh at other times; the step's error on the default element is
-// CoarseStepOnAFixedMeshUsesItsOwnCompliance's.
+// CoarseStepOnAFixedMeshUsesItsOwnCompliance's. For the same reason without the scene's
+// refinement ahead of the tip (lookahead 0): the elements it refines depend on when the passes
+// run, and with it the two schedules part by 1.75 % (target and force), a mesh difference.
 TEST(Prediction, CoarseStepAgreesWithTheLiveStep) {
   setBlasThreads(1);
-  Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml", {"tissue.element=trilinear"}));
+  Simulation sim(loadScene(kScenes + "phantom_insertion_adaptive.yaml", {"tissue.element=trilinear", "adaptivity.lookahead=0"}));
   sim.setTarget("target", Vec3(0.012, 0.01, 0.0115));
   for (int k = 0; k < 200; ++k) sim.step();
   const Prediction fine = predictInsertion(sim, straightPlan(sim, 0.012, 1.2, 1.5, 0.0));
