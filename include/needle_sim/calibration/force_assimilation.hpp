@@ -16,7 +16,8 @@
 // Robustness: rows with a non-finite value or a stale time are skipped and counted by the
 // reader; a sample whose residual at the fit exceeds `outlier_gate` times the larger of the
 // stated noise and the residuals' robust scale (1.4826 median |residual|) is rejected (counted, never used again) and the window refitted. A fit whose residuals stay
-// well above the stated noise (RMS > 1.5 sigma, 10 samples or more) is flagged inconsistent:
+// well above the stated noise (RMS > 1.5 sigma, 10 samples or more), all of them or one
+// sensor's against its own noise (10 values or more), is flagged inconsistent:
 // the model does not fit the measurement, and the estimate must not be trusted silently; its
 // covariance then takes the residuals' own scale (RSS / (m - n)) instead of the stated noise's,
 // and the next checkpoint's search is not confined to its deviations.
@@ -68,7 +69,7 @@ struct AssimilationCheckpoint {
   // ... per sensor, in its own units: RMS of measured - predicted per value (the force [N]; a
   // coordinate of the tip, the measured targets, the shape's points [m]); NaN: no new sample.
   double innovation_force = NAN, innovation_tip = NAN, innovation_target = NAN, innovation_shape = NAN;
-  bool consistent = true;        // rms <= 1.5 noise (or too few samples to tell)
+  bool consistent = true;        // rms <= 1.5 noise, and each sensor's against its own (or too few samples to tell)
   int evaluations = 0;           // simulations of the fit, its Jacobian and the target prediction
   double wall_s = 0;
   std::vector<Vec3> target_end;  // per target: its position at the scene's end with the estimate

@@ -317,19 +317,35 @@ void ForceAssimilation::checkpoint(double t) {
   double* by_sensor[4] = {&k.innovation_force, &k.innovation_tip, &k.innovation_target, &k.innovation_shape};
   for (int c = 0; c < 4; ++c)
     if (sensor_n[c]) *by_sensor[c] = std::sqrt(sensor2[c] / sensor_n[c]);
-  k.consistent = !stated() || k.samples < 10 || r.rms <= 1.5 * w_.noise;
-  // The residuals' own scale, s^2 = RSS / (m - n - offsets).
+  // Each sensor against its own noise too: a channel that misfits must not hide among the many
+  // values of another (a shape's points outnumber the force's samples tenfold). The residuals
+  // are weighted into the reference channel's units, so each channel's RMS is compared with
+  // the reference noise. Per channel (force, tip, targets, shape) with 10 values or more.
+  double channel2[4] = {0, 0, 0, 0};
+  int channel_n[4] = {0, 0, 0, 0};
+  for (Eigen::Index j = 0; j < r.residuals_fit.size(); ++j) {
+    const int c = r.residual_channel[static_cast<size_t>(j)];
+    const int g = c < 0 ? 3 : c == 0 ? 0 : c <= 3 ? 1 : 2;
+    channel2[g] += r.residuals_fit[j] * r.residuals_fit[j];
+    ++channel_n[g];
+  }
+  double worst = 0;  // the largest channel's RMS
+  for (int g = 0; g < 4; ++g)
+    if (channel_n[g] >= 10) worst = std::max(worst, std::sqrt(channel2[g] / channel_n[g]));
+  k.consistent = !stated() || k.samples < 10 || (r.rms <= 1.5 * w_.noise && worst <= 1.5 * w_.noise);
+  // The residuals' own scale, s^2 = RSS / (m - n - offsets); inconsistent, the worst channel's
+  // if that is larger.
   const double own = std::sqrt(r.residuals_fit.squaredNorm() / std::max(1, r.residuals - static_cast<int>(n) - r.offset_parameters));
   double s_eff = stated() ? w_.noise : own;  // the noise the covariance is scaled by
   if (!k.consistent) {
     // The residuals say the noise is larger than stated (or the model misses something): the
     // covariance takes their own scale, not the stated one (the Birge ratio), so that the
     // deviations reported are not the stated noise's.
-    const double inflation = own / w_.noise;
+    const double inflation = std::max(own, worst) / w_.noise;
     if (inflation > 1) {
       for (double& sd : k.stds) sd *= inflation;
       r.covariance *= inflation * inflation;
-      s_eff = own;
+      s_eff = std::max(own, worst);
     }
   }
   k.target_offset = r.target_offsets;
