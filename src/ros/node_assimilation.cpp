@@ -321,31 +321,8 @@ void NodeAssimilation::restart() {
 }
 
 ForceRecord NodeAssimilation::rows(std::vector<Sample> batch) const {
-  std::stable_sort(batch.begin(), batch.end(), [](const Sample& a, const Sample& b) { return a.t < b.t; });
-  ForceRecord r;
-  if (channels_[2]) r.targets.assign(static_cast<size_t>(num_targets_), {});
-  r.shape_spacing = p_.shape_spacing;
-  for (const Sample& s : batch) {
-    // Samples of different sensors at one time share a row; a second sample of one sensor
-    // at that time starts a row of its own a nanosecond later (the record's times increase).
-    const bool taken = !r.t.empty() && std::abs(s.t - r.t.back()) < 1e-9 &&
-                       (s.channel == 0 ? std::isfinite(r.force.back())
-                        : s.channel == 1 ? r.tip.back().allFinite()
-                        : s.channel == 3 ? !r.shape.back().empty()
-                                         : r.targets[static_cast<size_t>(target_)].back().allFinite());
-    if (r.t.empty() || s.t > r.t.back() + 1e-9 || taken) {
-      r.t.push_back(r.t.empty() ? s.t : std::max(s.t, r.t.back() + 1e-9));
-      r.force.push_back(kNaN);
-      if (channels_[1]) r.tip.push_back(Vec3::Constant(kNaN));
-      if (channels_[2]) r.targets[static_cast<size_t>(target_)].push_back(Vec3::Constant(kNaN));
-      if (channels_[3]) r.shape.emplace_back();
-    }
-    if (s.channel == 0) r.force.back() = s.force;
-    else if (s.channel == 1) r.tip.back() = s.point;
-    else if (s.channel == 3) r.shape.back() = s.shape;
-    else r.targets[static_cast<size_t>(target_)].back() = s.point;
-  }
-  return r;
+  return measurementRows(std::move(batch), channels_[1], channels_[2] ? target_ : -1, num_targets_, channels_[3],
+                         p_.shape_spacing);
 }
 
 void NodeAssimilation::worker() {

@@ -96,13 +96,7 @@ class NodeAssimilation {
   std::vector<TargetPrediction> predictions();
 
  private:
-  struct Sample {
-    double t = 0;
-    int channel = 0;  // 0 force, 1 tip, 2 target, 3 shape
-    double force = 0;
-    Vec3 point = Vec3::Zero();
-    std::vector<Vec3> shape;  // from the tip back (ForceRecord::shape)
-  };
+  using Sample = MeasurementSample;  // channel 0 force, 1 tip, 2 target, 3 shape
   void onWrench(const geometry_msgs::WrenchStamped::ConstPtr& m);
   void onPoint(int channel, const char* topic, const geometry_msgs::PointStamped::ConstPtr& m);  // tip, target
   void onShape(const geometry_msgs::PoseArray::ConstPtr& m);

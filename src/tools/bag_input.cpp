@@ -15,16 +15,6 @@
 
 namespace needle_sim {
 
-namespace {
-// A measurement taken from the bag, before the rows are laid out.
-struct Measured {
-  double t = 0;
-  int channel = 0;  // 0 force, 1 tip, 2 target, 3 shape
-  double force = 0;
-  Vec3 point = Vec3::Zero();
-  std::vector<Vec3> shape;  // from the tip back
-};
-}  // namespace
 
 BagSession readBagSession(const std::string& path, const BagTopics& topics, int needle, double needle_length,
                           const std::string& tissue_frame) {
@@ -49,7 +39,7 @@ BagSession readBagSession(const std::string& path, const BagTopics& topics, int 
   if (!topics.shape.empty() && !(topics.shape_spacing > 0 && std::isfinite(topics.shape_spacing)))
     throw InputError(path, "--shape-spacing", "must be a positive arc length [m]");
   BagSession s;
-  std::vector<Measured> measured;
+  std::vector<MeasurementSample> measured;
   try {
     // Each topic present and of its type (rosbag keeps topics with a leading slash or not:
     // either spelling is accepted), none given twice.
@@ -101,7 +91,7 @@ BagSession readBagSession(const std::string& path, const BagTopics& topics, int 
         if (f.size() < 5 || f.substr(f.size() - 5) != "_base")
           throw InputError(path, topics.wrench,
                            "the wrench is in frame '" + f + "': give it in the needle's base frame (<needle>_base, x along the needle)");
-        Measured x;
+        MeasurementSample x;
         x.t = at(w->header.stamp);
         // The sensor's reading as it is: the needle's force on the holder along the needle,
         // the simulation's axial force (observables.hpp).
@@ -113,7 +103,7 @@ BagSession readBagSession(const std::string& path, const BagTopics& topics, int 
         const auto q = m.instantiate<geometry_msgs::PointStamped>();
         if (!q) throw InputError(path, name, "carries " + m.getDataType() + ", not geometry_msgs/PointStamped");
         inTissue(q->header.frame_id, name);
-        Measured x;
+        MeasurementSample x;
         x.t = at(q->header.stamp);
         x.channel = tip ? 1 : 2;
         x.point = Vec3(q->point.x, q->point.y, q->point.z);
@@ -123,7 +113,7 @@ BagSession readBagSession(const std::string& path, const BagTopics& topics, int 
         const auto a = m.instantiate<geometry_msgs::PoseArray>();
         if (!a) throw InputError(path, topics.shape, "carries " + m.getDataType() + ", not geometry_msgs/PoseArray");
         inTissue(a->header.frame_id, topics.shape);
-        Measured x;
+        MeasurementSample x;
         x.t = at(a->header.stamp);
         x.channel = 3;
         const size_t n = a->poses.size();
@@ -145,38 +135,21 @@ BagSession readBagSession(const std::string& path, const BagTopics& topics, int 
     throw InputError(path, "--bag", std::string("cannot read the bag: ") + e.what());
   }
   if (s.commands.empty()) throw InputError(path, topics.pose, "no message on this topic in the bag");
-  // One row per time: samples of different sensors at one time share it; per sensor, a sample
-  // not after its previous one (a repeated or reordered stamp) is dropped (the first kept).
-  std::stable_sort(measured.begin(), measured.end(), [](const Measured& a, const Measured& b) { return a.t < b.t; });
-  ForceRecord& r = s.force;
-  const bool tip = !topics.tip.empty(), target = !topics.target.empty(), shape = !topics.shape.empty();
-  if (target) r.targets.assign(static_cast<size_t>(std::max(topics.num_targets, topics.target_index + 1)), {});
-  std::vector<Vec3>* tgt = target ? &r.targets[static_cast<size_t>(topics.target_index)] : nullptr;
-  r.shape_spacing = topics.shape_spacing;
+  // Per sensor, a sample not after its previous one (a repeated or reordered stamp) is dropped
+  // (the first kept); the rest laid into rows (measurementRows).
+  std::stable_sort(measured.begin(), measured.end(),
+                   [](const MeasurementSample& a, const MeasurementSample& b) { return a.t < b.t; });
+  std::vector<MeasurementSample> kept;
   double last[4] = {-1e300, -1e300, -1e300, -1e300};
   long count[4] = {0, 0, 0, 0};
-  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-  for (const Measured& x : measured) {
+  for (MeasurementSample& x : measured) {
     if (!(x.t > last[x.channel])) continue;
     last[x.channel] = x.t;
     ++count[x.channel];
-    const bool taken = !r.t.empty() && std::abs(x.t - r.t.back()) < 1e-9 &&
-                       (x.channel == 0   ? std::isfinite(r.force.back())
-                        : x.channel == 1 ? r.tip.back().allFinite()
-                        : x.channel == 2 ? tgt->back().allFinite()
-                                         : !r.shape.back().empty());
-    if (r.t.empty() || x.t > r.t.back() + 1e-9 || taken) {
-      r.t.push_back(r.t.empty() ? x.t : std::max(x.t, r.t.back() + 1e-9));
-      r.force.push_back(kNaN);
-      if (tip) r.tip.push_back(Vec3::Constant(kNaN));
-      if (target) tgt->push_back(Vec3::Constant(kNaN));
-      if (shape) r.shape.emplace_back();
-    }
-    if (x.channel == 0) r.force.back() = x.force;
-    else if (x.channel == 1) r.tip.back() = x.point;
-    else if (x.channel == 2) tgt->back() = x.point;
-    else r.shape.back() = x.shape;
+    kept.push_back(std::move(x));
   }
+  s.force = measurementRows(std::move(kept), !topics.tip.empty(), topics.target.empty() ? -1 : topics.target_index,
+                            topics.num_targets, !topics.shape.empty(), topics.shape_spacing);
   const std::string* names[4] = {&topics.wrench, &topics.tip, &topics.target, &topics.shape};
   for (int c = 0; c < 4; ++c)
     if (!names[c]->empty() && count[c] < 2)

@@ -37,6 +37,23 @@ struct ForceRecord {
   size_t shapePoints() const;  // the most points in a row
 };
 
+// One sensor's sample, before it is laid into a record's rows (the node's measurement topics,
+// a bag's): channel 0 the force, 1 the tip, 2 the measured target, 3 the shape.
+struct MeasurementSample {
+  double t = 0;
+  int channel = 0;
+  double force = 0;
+  Vec3 point = Vec3::Zero();
+  std::vector<Vec3> shape;  // from the tip back (ForceRecord::shape)
+};
+
+// The samples (any order) laid into a record's rows, in time: samples of different sensors
+// at one time share a row; a second sample of one sensor at that time starts a row of its own
+// a nanosecond later (the record's times increase strictly). The record has the force channel
+// and, as asked, the tip, target `target` of `num_targets` (< 0: none) and the shape.
+ForceRecord measurementRows(std::vector<MeasurementSample> samples, bool tip, int target, int num_targets, bool shape,
+                            double shape_spacing);
+
 // A run's needle centre line at a measured shape's points (ForceRecord::shape): the arc
 // lengths back from the tip, at the steps around the given times (one step either side: linear
 // interpolation between them is the same as between all steps); no times: every step.

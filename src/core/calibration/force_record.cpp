@@ -52,6 +52,34 @@ size_t ForceRecord::shapePoints() const {
   return n;
 }
 
+ForceRecord measurementRows(std::vector<MeasurementSample> samples, bool tip, int target, int num_targets, bool shape,
+                            double shape_spacing) {
+  std::stable_sort(samples.begin(), samples.end(), [](const MeasurementSample& a, const MeasurementSample& b) { return a.t < b.t; });
+  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+  ForceRecord r;
+  if (target >= 0) r.targets.assign(static_cast<size_t>(std::max(num_targets, target + 1)), {});
+  r.shape_spacing = shape_spacing;
+  for (const MeasurementSample& s : samples) {
+    const bool taken = !r.t.empty() && std::abs(s.t - r.t.back()) < 1e-9 &&
+                       (s.channel == 0   ? std::isfinite(r.force.back())
+                        : s.channel == 1 ? r.tip.back().allFinite()
+                        : s.channel == 3 ? !r.shape.back().empty()
+                                         : r.targets[static_cast<size_t>(target)].back().allFinite());
+    if (r.t.empty() || s.t > r.t.back() + 1e-9 || taken) {
+      r.t.push_back(r.t.empty() ? s.t : std::max(s.t, r.t.back() + 1e-9));
+      r.force.push_back(kNaN);
+      if (tip) r.tip.push_back(Vec3::Constant(kNaN));
+      if (target >= 0) r.targets[static_cast<size_t>(target)].push_back(Vec3::Constant(kNaN));
+      if (shape) r.shape.emplace_back();
+    }
+    if (s.channel == 0) r.force.back() = s.force;
+    else if (s.channel == 1) r.tip.back() = s.point;
+    else if (s.channel == 3) r.shape.back() = s.shape;
+    else r.targets[static_cast<size_t>(target)].back() = s.point;
+  }
+  return r;
+}
+
 CentreLineRequest CentreLineRequest::of(const ForceRecord& r) {
   CentreLineRequest q;
   q.points = r.shapePoints();
