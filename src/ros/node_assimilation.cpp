@@ -95,8 +95,9 @@ NodeAssimilation::NodeAssimilation(ros::NodeHandle pnh, const AssimilationParame
     for (size_t i = 0; i < p.keys.size(); ++i)
       if (!adoption_->adoptable(static_cast<int>(i))) kept += (kept.empty() ? "" : ", ") + p.keys[i];
     if (!kept.empty())
-      ROS_WARN("needle_sim: assimilation: %s estimated, not adopted: the live simulation takes only the interaction's "
-               "cutting_force, puncture_force, friction and grip_pressure during a run",
+      ROS_WARN("needle_sim: assimilation: %s estimated, not adopted: the live simulation takes only "
+               "tissue.material.young and the interaction's cutting_force, puncture_force, friction and grip_pressure "
+               "during a run",
                kept.c_str());
   }
 

@@ -5,7 +5,8 @@
 // (calibration/force_assimilation.hpp, what `needle_sim run --assimilate` runs) refitted on a
 // thread of its own under SCHED_IDLE, so that it never makes a step late; ~estimate and
 // a diagnostics entry out. The live simulation adopts each consistent estimate of the keys it
-// can take during a run (Simulation::adoptable: the interaction's forces, friction and grip),
+// can take during a run (Simulation::adoptable: the tissue's Young's modulus, the interaction's
+// forces, friction and grip),
 // ramped over ~assimilation/adopt_ramp (calibration/parameter_adoption.hpp) so that its
 // published force has no jump; the other keys are estimated only.
 //

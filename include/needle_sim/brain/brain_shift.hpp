@@ -91,10 +91,14 @@ class BrainShift {
   VecX supportAnchorLoad(const TissueBody& body, const EmbeddedSurface& organ) const;
   bool hasSupport() const { return settings_.skull_support && skull_ && skull_->touching(); }
   // After the pre-step, the loads that outlive a mesh change, applied to `body` on any mesh
-  // (organ: the organ surface embedded in it, or nullptr): the shift's gravity at load_scale,
-  // the frozen skull reactions and the support springs. Reads the frozen state only: callable
-  // from any thread (a mesh change built in the background).
-  void applyPersistentLoads(TissueBody& body, const EmbeddedSurface* organ, double load_scale) const;
+  // (organ: the organ surface embedded in it, or nullptr): the shift's gravity at load_scale
+  // and the frozen skull reactions (shiftLoad), times `factor` (an adopted stiffness's:
+  // AdaptiveTissue::setPersistentLoads), and the support springs. Reads the frozen state
+  // only: callable from any thread (a mesh change built in the background).
+  void applyPersistentLoads(TissueBody& body, const EmbeddedSurface* organ, double load_scale,
+                            double factor = 1.0) const;
+  // The shift's gravity at load_scale plus the frozen skull reactions, on body's mesh.
+  VecX shiftLoad(const TissueBody& body, const EmbeddedSurface* organ, double load_scale) const;
   // The support springs alone (hasSupport), on `body`.
   void applySupport(TissueBody& body, const EmbeddedSurface* organ) const;
 

@@ -17,6 +17,8 @@
 #include <vector>
 
 #include "needle_sim/core/types.hpp"
+#include <atomic>
+
 #include "needle_sim/fem/hex8.hpp"
 #include "needle_sim/fem/hex_mesh.hpp"
 #include "needle_sim/fem/material.hpp"
@@ -32,7 +34,19 @@ class CorotationalHexModel {
   CorotationalHexModel& operator=(const CorotationalHexModel&) = delete;
 
   const HexMesh& mesh() const { return mesh_; }
+  // The material the references were computed for (the scene's).
   const LinearElasticMaterial& material() const { return material_; }
+  // A factor on every element's stiffness: Young's modulus adopted during a run (Simulation::
+  // adopt) is material().young times it. K0 is linear in E at a fixed nu (every formulation:
+  // hex8.hpp), so scaling the products is exact. Atomic: a background factor refresh reads it.
+  double stiffnessScale() const { return stiffness_scale_.load(std::memory_order_relaxed); }
+  void setStiffnessScale(double s) { stiffness_scale_.store(s, std::memory_order_relaxed); }
+  // material() with the adopted Young's modulus: what stresses and estimates use.
+  LinearElasticMaterial materialInUse() const {
+    LinearElasticMaterial m = material_;
+    m.young *= stiffnessScale();
+    return m;
+  }
   int numElements() const { return mesh_.numElements(); }
   // Number of distinct element references (rest shape and volume fraction), i.e. K0 matrices stored.
   int numReferences() const { return static_cast<int>(refs_.size()); }
@@ -98,6 +112,7 @@ class CorotationalHexModel {
 
   const HexMesh& mesh_;
   LinearElasticMaterial material_;
+  std::atomic<double> stiffness_scale_{1.0};
   std::vector<hex8::ElementReference> refs_;
   std::vector<int> ref_of_;
   std::vector<int> shape_of_;

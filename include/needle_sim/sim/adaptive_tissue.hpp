@@ -51,6 +51,7 @@ class AdaptiveTissue {
     TissueBinding binding;                  // built in the background: the interaction's lookups
     std::vector<int> levels;
     int num_hanging = 0;
+    double stiffness_scale = 1;  // the one the body and its loads were made with
   };
   // What a switch hands to the mesh's dependents.
   struct Switch {
@@ -96,10 +97,19 @@ class AdaptiveTissue {
   const VecX& shifted() const { return shifted_; }
 
   // From the end of the brain-shift pre-step: its loads outlive every mesh change.
-  void setPersistentLoads(const BrainShift* shift, double load_scale) {
+  // with_stiffness: the shift's load (gravity at load_scale and the frozen skull reactions)
+  // goes with the stiffness in use (brain_shift.target_shift: a measured shift, which a stiffer
+  // brain reaches under a proportionally larger load, as the pre-step would have scaled it).
+  void setPersistentLoads(const BrainShift* shift, double load_scale, bool with_stiffness) {
     shift_ = shift;
     load_scale_ = load_scale;
+    loads_with_stiffness_ = with_stiffness;
   }
+  bool loadsWithStiffness() const { return loads_with_stiffness_; }
+  // Young's modulus adopted during a run, as a factor on the scene's: on the body in use (its
+  // shift loads with it, see above) and on every body prepared from now on (stepping thread).
+  void setStiffnessScale(double k);
+  double stiffnessScale() const { return stiffness_scale_.load(std::memory_order_relaxed); }
   const BrainShift* persistentShift() const { return shift_; }
   void setOnSwitch(std::function<void(Switch&)> f) { on_switch_ = std::move(f); }
 
@@ -143,6 +153,8 @@ class AdaptiveTissue {
   VecX reference_, shifted_;
   const BrainShift* shift_ = nullptr;  // frozen after the pre-step
   double load_scale_ = 1;
+  bool loads_with_stiffness_ = false;
+  std::atomic<double> stiffness_scale_{1.0};  // read by prepare() on a background thread
   std::function<void(Switch&)> on_switch_;
   std::atomic<bool> lent_{false};
 };

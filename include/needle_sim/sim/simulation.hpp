@@ -79,10 +79,11 @@ class Simulation {
   // The needle-tissue interaction, or nullptr when the scene has none.
   const NeedleTissueInteraction* interaction() const { return interaction_.get(); }
   // Scene values the live simulation can take during a run, from its next step (an estimate
-  // from measurements adopted: calibration/parameter_adoption.hpp): the interaction's
+  // from measurements adopted: calibration/parameter_adoption.hpp): the tissue's Young's
+  // modulus (tissue.material.young: AdaptiveTissue::setStiffnessScale) and the interaction's
   // cutting_force, puncture_force, friction and grip_pressure, by their scene keys. scene()
   // keeps the values it was given. adopt throws InputError for another key, a scene without
-  // an interaction, or a value outside the key's declared range.
+  // the part it names, or a value outside the key's declared range.
   static bool adoptable(const std::string& key);
   void adopt(const std::string& key, double value);
   double valueInUse(const std::string& key) const;  // an adoptable key's value now

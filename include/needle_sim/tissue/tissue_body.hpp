@@ -47,6 +47,9 @@ class TissueBody {
 
   const HexMesh& mesh() const { return *mesh_; }
   const CorotationalHexModel& model() const { return *model_; }
+  // Young's modulus adopted during a run, as a factor on the scene's (CorotationalHexModel::
+  // setStiffnessScale): the factor in use becomes stale, and is refreshed as after rotations.
+  void setStiffnessScale(double k) { model_->setStiffnessScale(k); }
   const DofMap& dofs() const { return dofs_; }
   const VecX& positions() const { return x_; }
   const VecX& velocities() const { return v_; }

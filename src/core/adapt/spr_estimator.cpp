@@ -170,7 +170,7 @@ Eigen::Matrix<double, 24, 1> SprEstimator::corotatedDisplacement(const VecX& x, 
 Stress SprEstimator::elementStress(const VecX& x, int e, const Vec3& xi, const Mat3& R) const {
   const auto u = corotatedDisplacement(x, e, R);
   const auto B = hex8::strainOperator(model_.mesh().elementCorners(e), model_.reference(e), xi);
-  const Stress local = model_.material().elasticity() * (B * u);
+  const Stress local = model_.materialInUse().elasticity() * (B * u);
   return rotate(R, local);
 }
 
@@ -226,7 +226,7 @@ SprEstimator::DualIndicators SprEstimator::dual(const VecX& x, const VecX* refer
                                                 const VecX& dz) const {
   const HexMesh& mesh = model_.mesh();
   const int ne = mesh.numElements();
-  const auto& D = model_.material().elasticity();
+  const auto& D = model_.materialInUse().elasticity();
   const Eigen::Matrix<double, 6, 6> Dinv = D.inverse();
   const std::vector<Mat3>& R = rotations(x);
   std::vector<Stress> centroid(ne);
@@ -280,7 +280,7 @@ ErrorEstimate SprEstimator::estimate(const VecX& x, const VecX* reference,
   const std::vector<Mat3>& R = rotations(x, guesses);
   static const std::vector<Mat3> none;
   const std::vector<Mat3>& R0 = reference ? rotations(*reference, guesses) : none;
-  const auto& D0 = model_.material().elasticity();
+  const auto& D0 = model_.materialInUse().elasticity();
   for (int e = 0; e < ne; ++e) {
     const auto& Bc = shape(e).centroid_B;
     est.centroid_stress[e] = rotate(R[e], D0 * (Bc * corotatedDisplacement(x, e, R[e])));
@@ -290,7 +290,7 @@ ErrorEstimate SprEstimator::estimate(const VecX& x, const VecX* reference,
   est.recovered = recover(est.centroid_stress);
 
   // Element errors in the energy norm (compliance D^-1), 2x2x2 Gauss.
-  const auto& D = model_.material().elasticity();
+  const auto& D = model_.materialInUse().elasticity();
   const Eigen::Matrix<double, 6, 6> Dinv = D.inverse();
   const GaussTable& gt = gaussTable();
   est.eta.assign(ne, 0.0);

@@ -260,9 +260,16 @@ void BrainShift::applySupport(TissueBody& body, const EmbeddedSurface* organ) co
   body.addExternalForce(supportAnchorLoad(body, *organ));
 }
 
-void BrainShift::applyPersistentLoads(TissueBody& body, const EmbeddedSurface* organ, double load_scale) const {
+VecX BrainShift::shiftLoad(const TissueBody& body, const EmbeddedSurface* organ, double load_scale) const {
   VecX f = load_scale * unitLoad(body);
   if (organ) f += skullLoad(body, *organ);
+  return f;
+}
+
+void BrainShift::applyPersistentLoads(TissueBody& body, const EmbeddedSurface* organ, double load_scale,
+                                      double factor) const {
+  VecX f = shiftLoad(body, organ, load_scale);
+  if (factor != 1.0) f *= factor;
   body.addExternalForce(f);
   applySupport(body, organ);
 }

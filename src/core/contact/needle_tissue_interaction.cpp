@@ -162,7 +162,7 @@ double NeedleTissueInteraction::interfaceCompliance(int n, int e) const {
   if (settings_.lateral_mode == Mode::Auto) {
     const Eigen::Matrix<double, 8, 3> c = tissue_->mesh().elementCorners(e);
     const double edge = (c.colwise().maxCoeff() - c.colwise().minCoeff()).mean();
-    const LinearElasticMaterial& m = tissue_->model().material();
+    const LinearElasticMaterial m = tissue_->model().materialInUse();
     const double r = needles_[n]->beam().section().outer_radius;
     k = nearFieldLateralStiffness(m.young, m.poisson, r, resolvedRadius(edge, r));
   }

@@ -55,6 +55,7 @@ void extractRotation(const Mat3& A, Eigen::Quaterniond& q) {
 CorotationalHexModel::CorotationalHexModel(const CorotationalHexModel& o, const HexMesh& mesh)
     : mesh_(mesh),
       material_(o.material_),
+      stiffness_scale_(o.stiffnessScale()),
       refs_(o.refs_),
       ref_of_(o.ref_of_),
       shape_of_(o.shape_of_),
@@ -175,9 +176,13 @@ Eigen::Matrix<double, 24, 1> CorotationalHexModel::localDisplacement(int e, cons
   return u;
 }
 
+// The stiffness scale is applied only when it is not 1, so that a run without an adopted
+// stiffness computes what it did before it existed, bit for bit.
 void CorotationalHexModel::addInternalForce(const VecX& x, VecX& f) const {
+  const double k = stiffnessScale();
   for (int e = 0; e < mesh_.numElements(); ++e) {
-    const Eigen::Matrix<double, 24, 1> fl = timesK0(refs_[ref_of_[e]].K0, localDisplacement(e, x));
+    Eigen::Matrix<double, 24, 1> fl = timesK0(refs_[ref_of_[e]].K0, localDisplacement(e, x));
+    if (k != 1.0) fl *= k;
     const auto& el = mesh_.element(e);
     const Mat3& R = rot_[e];
     for (int a = 0; a < 8; ++a) node3(f, el[a]).noalias() -= R * fl.segment<3>(3 * a);
@@ -185,6 +190,7 @@ void CorotationalHexModel::addInternalForce(const VecX& x, VecX& f) const {
 }
 
 void CorotationalHexModel::addStiffnessProduct(const VecX& v, double s, VecX& out) const {
+  s *= stiffnessScale();
   Eigen::Matrix<double, 24, 1> vl;
   for (int e = 0; e < mesh_.numElements(); ++e) {
     const auto& el = mesh_.element(e);
@@ -200,6 +206,8 @@ void CorotationalHexModel::elementStiffness(int e, const Mat3& R, hex8::Mat24& K
   for (int a = 0; a < 8; ++a)
     for (int b = 0; b < 8; ++b)
       Ke.block<3, 3>(3 * a, 3 * b).noalias() = R * K0.block<3, 3>(3 * a, 3 * b) * R.transpose();
+  const double k = stiffnessScale();
+  if (k != 1.0) Ke *= k;
 }
 
 void CorotationalHexModel::rotationTerms(const VecX& x, RotationTerms& t) const {
@@ -207,6 +215,7 @@ void CorotationalHexModel::rotationTerms(const VecX& x, RotationTerms& t) const 
   t.h_inv.resize(n);
   t.force.resize(n);
   t.centred.resize(n);
+  const double k = stiffnessScale();
   for (int e = 0; e < n; ++e) {
     const auto& el = mesh_.element(e);
     const Mat3& R = rot_[e];
@@ -221,7 +230,8 @@ void CorotationalHexModel::rotationTerms(const VecX& x, RotationTerms& t) const 
     Eigen::LLT<Mat3> llt(H);
     const bool ok = S.trace() > 0 && llt.info() == Eigen::Success && H.diagonal().minCoeff() > 1e-6 * S.trace();
     t.h_inv[e] = ok ? Mat3(llt.solve(Mat3::Identity())) : Mat3::Zero();
-    const Eigen::Matrix<double, 24, 1> fl = timesK0(refs_[ref_of_[e]].K0, localDisplacement(e, x));
+    Eigen::Matrix<double, 24, 1> fl = timesK0(refs_[ref_of_[e]].K0, localDisplacement(e, x));
+    if (k != 1.0) fl *= k;
     for (int a = 0; a < 8; ++a) {
       t.force[e].segment<3>(3 * a) = R * fl.segment<3>(3 * a);
       t.centred[e].segment<3>(3 * a) = node3(x, el[a]) - xc;
@@ -231,6 +241,7 @@ void CorotationalHexModel::rotationTerms(const VecX& x, RotationTerms& t) const 
 
 void CorotationalHexModel::addRotationStiffnessProduct(const RotationTerms& t, const VecX& v, double s,
                                                         VecX& out) const {
+  const double ks = stiffnessScale();
   Eigen::Matrix<double, 24, 1> y;
   for (int e = 0; e < mesh_.numElements(); ++e) {
     if (t.h_inv[e].isZero(0)) continue;
@@ -241,7 +252,8 @@ void CorotationalHexModel::addRotationStiffnessProduct(const RotationTerms& t, c
     for (int a = 0; a < 8; ++a) g += (R * G.row(a).transpose()).cross(node3(v, el[a]));
     const Vec3 w = t.h_inv[e] * g;
     for (int b = 0; b < 8; ++b) y.segment<3>(3 * b).noalias() = R.transpose() * w.cross(t.centred[e].segment<3>(3 * b));
-    const Eigen::Matrix<double, 24, 1> k = timesK0(refs_[ref_of_[e]].K0, y);
+    Eigen::Matrix<double, 24, 1> k = timesK0(refs_[ref_of_[e]].K0, y);
+    if (ks != 1.0) k *= ks;
     for (int a = 0; a < 8; ++a)
       node3(out, el[a]).noalias() += s * (w.cross(t.force[e].segment<3>(3 * a)) - R * k.segment<3>(3 * a));
   }
@@ -253,7 +265,8 @@ double CorotationalHexModel::elasticEnergy(const VecX& x) const {
     const auto u = localDisplacement(e, x);
     E += 0.5 * u.dot(refs_[ref_of_[e]].K0 * u);
   }
-  return E;
+  const double k = stiffnessScale();
+  return k != 1.0 ? k * E : E;
 }
 
 }  // namespace needle_sim

@@ -59,7 +59,9 @@ AdaptiveTissue::AdaptiveTissue(const AdaptiveTissue& o, const Scene& scene)
       hanging_(o.hanging_),
       reference_(o.reference_),
       shifted_(o.shifted_),
-      load_scale_(o.load_scale_) {
+      load_scale_(o.load_scale_),
+      loads_with_stiffness_(o.loads_with_stiffness_),
+      stiffness_scale_(o.stiffnessScale()) {
   if (o.organ_) organ_ = std::make_unique<EmbeddedSurface>(o.organ_->restPtr(), body_->mesh());
   if (o.adaptation_) adaptation_ = std::make_unique<MeshAdaptation>(*o.adaptation_);
 }
@@ -109,9 +111,12 @@ std::shared_ptr<AdaptiveTissue::Prepared> AdaptiveTissue::prepare(MeshChange c, 
   auto p = std::make_shared<Prepared>();
   p->body = std::make_unique<TissueBody>(std::move(c.mesh), scene.tissue, scene.solver, scene.file, c.hanging);
   p->body->setState(x, v);
+  p->stiffness_scale = stiffnessScale();
+  if (p->stiffness_scale != 1.0) p->body->setStiffnessScale(p->stiffness_scale);
   const HexMesh& m = p->body->mesh();
   if (immersed_) p->organ = std::make_unique<EmbeddedSurface>(scene.tissue.geometry.surface, m);
-  if (persistent_loads && shift_) shift_->applyPersistentLoads(*p->body, p->organ.get(), load_scale_);
+  if (persistent_loads && shift_)
+    shift_->applyPersistentLoads(*p->body, p->organ.get(), load_scale_, loads_with_stiffness_ ? p->stiffness_scale : 1.0);
   p->locator = std::make_unique<PointLocator>(m);
   if (steps_h > 0) {
     const PointLocator& locator = *p->locator;
@@ -137,6 +142,7 @@ std::shared_ptr<AdaptiveTissue::Prepared> AdaptiveTissue::copyPrepared(const Pre
   if (p.organ) q->organ = std::make_unique<EmbeddedSurface>(p.organ->restPtr(), q->body->mesh());
   q->levels = p.levels;
   q->num_hanging = p.num_hanging;
+  q->stiffness_scale = p.stiffness_scale;
   // Its lookups are made at its own switch, on the thread that steps the copy (a
   // prediction's): a copy taken on the stepping thread for an estimate never gets there.
   return q;
@@ -155,11 +161,26 @@ void AdaptiveTissue::switchTo(Prepared& p, bool carry_velocities, bool retire) {
   if (!p.locator) p.locator = std::make_unique<PointLocator>(body_->mesh());
   levels_ = std::move(p.levels);
   hanging_ = p.num_hanging;
+  // A stiffness adopted while the body was prepared in the background.
+  const double k = stiffnessScale();
+  if (p.stiffness_scale != k) {
+    body_->setStiffnessScale(k);
+    if (shift_ && loads_with_stiffness_)
+      body_->addExternalForce((k - p.stiffness_scale) * shift_->shiftLoad(*body_, organ_.get(), load_scale_));
+  }
   if (on_switch_) {
     Switch s{*body_, organ_.get(), *p.locator, p.binding.locator ? &p.binding : nullptr, std::move(p.spr)};
     on_switch_(s);
   }
   if (retire) retired_ = std::move(old);  // freed on the next pass's or build's thread
+}
+
+void AdaptiveTissue::setStiffnessScale(double k) {
+  const double old = stiffnessScale();
+  if (k == old) return;
+  body_->setStiffnessScale(k);
+  if (shift_ && loads_with_stiffness_) body_->addExternalForce((k - old) * shift_->shiftLoad(*body_, organ_.get(), load_scale_));
+  stiffness_scale_.store(k, std::memory_order_relaxed);
 }
 
 void AdaptiveTissue::rebuild(bool persistent_loads) {

@@ -115,7 +115,8 @@ Simulation::Simulation(const Simulation& o)
     shift_ = std::make_unique<BrainShift>(*o.shift_);
     shift_->rebind(tissue_->organ());
   }
-  if (o.tissue_->persistentShift()) tissue_->setPersistentLoads(shift_.get(), shift_result_.load_scale);
+  if (o.tissue_->persistentShift())
+    tissue_->setPersistentLoads(shift_.get(), shift_result_.load_scale, o.tissue_->loadsWithStiffness());
   makeEstimation(&o);
   makeInteraction(o.interaction_.get());
 }
@@ -246,7 +247,7 @@ void Simulation::preStep() {
     tissue_->reference() = tissue_->body().positions();
     forgetEstimates();
   }
-  tissue_->setPersistentLoads(shift_.get(), total.load_scale);
+  tissue_->setPersistentLoads(shift_.get(), total.load_scale, t >= 0 && scene_.brain_shift->target_shift);
   total.ms = msSince(t0);
   shift_result_ = total;
 }
@@ -372,17 +373,27 @@ double* adoptableField(InteractionSettings& s, const std::string& key) {
   return nullptr;
 }
 
+const char* const kYoung = "tissue.material.young";
+
 }  // namespace
 
 bool Simulation::adoptable(const std::string& key) {
   InteractionSettings s;
-  return adoptableField(s, key) != nullptr;
+  return key == kYoung || adoptableField(s, key) != nullptr;
 }
 
 void Simulation::adopt(const std::string& key, double value) {
   if (!adoptable(key))
-    throw InputError("", key, "not a value the live simulation can take during a run (it can: interaction.cutting_force, "
-                              "puncture_force, friction, grip_pressure)");
+    throw InputError("", key, "not a value the live simulation can take during a run (it can: tissue.material.young, "
+                              "interaction.cutting_force, puncture_force, friction, grip_pressure)");
+  if (key == kYoung) {
+    if (!tissue_) throw InputError("", key, "the scene has no tissue");
+    if (!(value > 0) || !std::isfinite(value)) throw InputError("", key, "the value " + Range::number(value) + " is not positive");
+    // A factor on the scene's modulus: every element's stiffness (and, under a prescribed
+    // brain shift, its load) scales with it from the next step.
+    tissue_->setStiffnessScale(value / scene_.tissue.material.young);
+    return;
+  }
   if (!interaction_) throw InputError("", key, "the scene has no needle-tissue interaction");
   InteractionSettings s = interaction_->settings();
   const std::string name = key.substr(key.find('.') + 1);
@@ -394,6 +405,7 @@ void Simulation::adopt(const std::string& key, double value) {
 }
 
 double Simulation::valueInUse(const std::string& key) const {
+  if (key == kYoung) return tissue_ ? scene_.tissue.material.young * tissue_->stiffnessScale() : std::numeric_limits<double>::quiet_NaN();
   if (!adoptable(key) || !interaction_) return std::numeric_limits<double>::quiet_NaN();
   InteractionSettings s = interaction_->settings();
   return *adoptableField(s, key);

@@ -19,7 +19,7 @@ TissueSnapshot SnapshotTaker::take(const Simulation& sim, bool with_estimate, bo
     source_nodes_ = mesh.numNodes();
   }
   s.mesh = mesh_;
-  s.material = sim.scene().tissue.material;
+  s.material = t.model().materialInUse();  // with an adopted stiffness
   s.x = t.positions();
   if (const VecX* r = sim.estimateReference()) s.reference = *r;
   s.level = sim.elementLevels();
@@ -44,6 +44,7 @@ DisplayFields DisplayFieldBuilder::build(const TissueSnapshot& s, bool errors, b
     faces_ = mesh.boundaryFaces();
     mesh_ = s.mesh;
   }
+  model_->setStiffnessScale(s.material.young / model_->material().young);  // adopted since
   f.u = s.x - mesh.restPositions();
   const int ne = mesh.numElements(), nn = mesh.numNodes();
   if (errors) {
