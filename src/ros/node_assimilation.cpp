@@ -56,6 +56,7 @@ NodeAssimilation::NodeAssimilation(ros::NodeHandle pnh, const AssimilationParame
     if (p.needle.empty() ? i == 0 : scene.needles[i].name == p.needle) needle_ = static_cast<int>(i);
   if (needle_ < 0) throw InputError("", "~assimilation/needle", "the scene has no needle '" + p.needle + "'");
   for (const auto& t : scene.targets) target_names_.push_back(t.name);
+  scene_target_names_ = target_names_;
   num_targets_ = static_cast<int>(target_names_.size());
   target_ = -1;
   for (int j = 0; j < num_targets_; ++j)
@@ -285,6 +286,12 @@ void NodeAssimilation::afterStep(Simulation& sim, const Observables& obs) {
   if (due) wake_.notify_one();
 }
 
+void NodeAssimilation::setTarget(const std::string& name, const Vec3& planned) {
+  std::lock_guard<std::mutex> lk(mutex_);
+  target_edits_.push_back({name, planned});
+  if (std::find(target_names_.begin(), target_names_.end(), name) == target_names_.end()) target_names_.push_back(name);
+}
+
 void NodeAssimilation::restart() {
   {
     std::lock_guard<std::mutex> lk(mutex_);
@@ -292,6 +299,8 @@ void NodeAssimilation::restart() {
     cancel_ = true;  // the refit under way is of the old session
     pending_.clear();
     commands_.clear();
+    target_edits_.clear();  // the new session's simulation has the scene's targets
+    target_names_ = scene_target_names_;
     adopt_new_ = false;
     adopt_clear_ = true;  // the new session starts from the scene's values
     predictions_.clear();
@@ -336,6 +345,7 @@ void NodeAssimilation::worker() {
   // The session's base poses so far: those recorded since the last estimate are copied under
   // the lock (the stepping thread waits on it), the rest is kept here.
   std::vector<RecordedCommand> commands;
+  std::vector<TargetEdit> target_edits;
   size_t taken = 0;
   for (;;) {
     std::vector<Sample> batch;
@@ -349,6 +359,7 @@ void NodeAssimilation::worker() {
         a.reset();
         held = ForceRecord{};
         commands.clear();
+        target_edits.clear();
         taken = 0;
         generation = generation_;
         cancel_ = false;
@@ -365,6 +376,7 @@ void NodeAssimilation::worker() {
         taken = commands_.size();
       }
       for (long n : refused_) rejected += n;
+      target_edits = target_edits_;
     }
     if (batch.empty()) continue;
     ForceRecord r = rows(std::move(batch));
@@ -383,6 +395,7 @@ void NodeAssimilation::worker() {
         if (held.t.size() < 2) continue;
         AssimilationSettings s = settings_;
         s.fit.commands = commands;
+        s.fit.target_edits = target_edits;
         // Adopted as soon as fitted, before the targets' prediction (whole-scene runs: seconds).
         s.on_fit = [this, &generation](const AssimilationCheckpoint& k) {
           std::lock_guard<std::mutex> lk(mutex_);
@@ -398,6 +411,7 @@ void NodeAssimilation::worker() {
       } else {
         a->append(r);
         if (replay_) a->setCommands(commands);
+        a->setTargetEdits(target_edits);
       }
       const size_t before = a->checkpoints().size();
       a->update(until);

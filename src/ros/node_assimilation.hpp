@@ -91,6 +91,9 @@ class NodeAssimilation {
   void afterStep(Simulation& sim, const Observables& obs);
   // ~reset: the session starts again (samples, commands and the estimate forgotten).
   void restart();
+  // ~set_target: a target added or moved (its planning position) during the session; the
+  // refits from the next one on set it as the live simulation did, and predict it.
+  void setTarget(const std::string& name, const Vec3& planned);
   void diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat);
   // The latest estimate's prediction per target (empty before the first; TargetState, the
   // rviz ellipsoid).
@@ -115,7 +118,7 @@ class NodeAssimilation {
   AssimilationParameters p_;
   AssimilationSettings settings_;
   int needle_ = 0, target_ = 0, num_targets_ = 0;
-  std::vector<std::string> target_names_;
+  std::vector<std::string> target_names_;  // the estimate's targets (under mutex_ once running)
   bool replay_ = false;
   tf2_ros::Buffer& tf_;
   std::string tissue_frame_, base_frame_;
@@ -139,6 +142,8 @@ class NodeAssimilation {
   std::vector<Sample> pending_;    // arrived, not yet handed to the estimator
   double committed_ = -std::numeric_limits<double>::infinity();  // samples up to here were handed over
   std::vector<RecordedCommand> commands_;
+  std::vector<TargetEdit> target_edits_;       // this session's ~set_target calls
+  std::vector<std::string> scene_target_names_;  // target_names_ at a session's start
   double next_due_ = 0;
   std::array<long, kRules> refused_{};
   std::array<long, kRules> suppressed_{};

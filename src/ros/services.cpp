@@ -58,6 +58,8 @@ bool SimulatorRos::onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::
   try {
     primary_target_ = sim_->setTarget(req.name, fromPoint(req.point));
     names_ = std::make_shared<const ObservableNames>(observableNames(*sim_));
+    // The estimator's refits set it too: their prediction covers it.
+    if (assimilation_) assimilation_->setTarget(req.name, fromPoint(req.point));
   } catch (const std::exception& e) {
     res.success = false;
     res.message = e.what();

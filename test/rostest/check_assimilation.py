@@ -25,12 +25,15 @@ Asserted:
   estimate is fitted (before that estimate is published: its target prediction takes
   seconds), meets the patient's after the ramp, with no jump between two messages beyond the
   noise;
-- the target's predicted position and covariance in TargetState and its ellipsoid in rviz;
+- the target's predicted position and covariance in TargetState and its ellipsoid in rviz; a
+  target added by ~set_target during the session (T2) is predicted by the estimates after it,
+  as a run of the scene with it at the estimate's value predicts it;
   after ~reset the latched estimate is the new session's (none).
 The same run without the outliers or the bad input gives the same estimate within its std
 (the bad input did not move it): checked against the tool's `run --data --assimilate` on
 the same samples (summary.json) within 3 standard deviations."""
 import csv
+import json
 import math
 import os
 import random
@@ -48,6 +51,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Pose, PoseArray, WrenchStamped
 from needle_sim import paths
 from needle_sim.msg import ParameterEstimate, SimStatus, TargetState
+from needle_sim.srv import SetTarget, SetTargetRequest
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
@@ -59,6 +63,9 @@ SCENE = "phantom_insertion_8x4x4.yaml"
 # 20 mm in 5.7 s: long enough to see an estimate adopted while the tip cuts, however long the
 # fits take (each runs the session again: seconds of wall time).
 # A target 1.5 mm beside the path: its predicted position and covariance in TargetState and rviz.
+# T2: set by ~set_target once the session runs (1.5 mm below the path, 18 mm in).
+T2 = (0.018, 0.0085, 0.0100)
+TARGETS_WITH_T2 = "targets=[{name: T, point: [0.022, 0.0115, 0.0105], radius: 0.001}, {name: T2, point: [%r, %r, %r]}]" % T2
 SETS = ["time.dt=0.002", "time.duration=6.0",
         "needle.motion=[{t: 0.0, advance: 0.0}, {t: 0.3, advance: 0.003}, {t: 6.0, advance: 0.023}]",
         "targets=[{name: T, point: [0.022, 0.0115, 0.0105], radius: 0.001}]"]
@@ -192,6 +199,11 @@ class Assimilation(unittest.TestCase):
                 continue
             if i == 0:
                 self.assertLess(now, 0.3, "the first status after ~reset is late: samples would be stale")
+                # A target added during the session: the estimates' predictions cover it.
+                req = SetTargetRequest()
+                req.name = "T2"
+                req.point.x, req.point.y, req.point.z = T2
+                self.assertTrue(rospy.ServiceProxy("needle_sim/set_target", SetTarget)(req).success)
             while j < len(shapes) and shapes[j][0] <= now:
                 t, frame, pts = shapes[j]
                 send_shape(t, frame, pts, origin)
@@ -274,7 +286,6 @@ class Assimilation(unittest.TestCase):
         for x in SETS:
             cmd += ["--set", x]
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-        import json
         ref = json.load(open(os.path.join(tmp, "est", "summary.json")))["assimilation"]["parameters"]["interaction.cutting_force"]
         rospy.loginfo("tool on the good samples: %.6g +- %.3g", ref["value"], ref["std"])
         self.assertLess(abs(v - ref["value"]), 3 * ref["std"])
@@ -332,8 +343,9 @@ class Assimilation(unittest.TestCase):
         got = {}
 
         def on_state(m):
-            with lock:
-                got["state"] = m
+            if m.name == "T":
+                with lock:
+                    got["state"] = m
 
         def on_markers(m):
             for x in m.markers:
@@ -354,7 +366,18 @@ class Assimilation(unittest.TestCase):
         for s_ in subs:
             s_.unregister()
         self.assertTrue(ok, "no TargetState and prediction marker of the latest estimate")
-        self.assertEqual(list(est.targets), ["T"])
+        self.assertEqual(list(est.targets), ["T", "T2"])
+        # T2, set by ~set_target, predicted as a run of the scene with it and the estimate's value
+        # (the same code: to round-off).
+        cmd = [paths.tool(), "run", paths.scene(SCENE), "--out", os.path.join(tmp, "t2"), "--quiet",
+               "--set", "interaction.cutting_force=%.17g" % est.values[0]]
+        for x in SETS[:-1] + [TARGETS_WITH_T2]:
+            cmd += ["--set", x]
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        t2 = json.load(open(os.path.join(tmp, "t2", "summary.json")))["targets"]["T2"]["position"]
+        q = est.target_positions[1]
+        rospy.loginfo("T2 predicted at (%.9f, %.9f, %.9f), the run with it: %s", q.x, q.y, q.z, t2)
+        numpy.testing.assert_allclose((q.x, q.y, q.z), t2, rtol=0, atol=1e-9)
         p = est.target_positions[0]
         self.assertEqual((ts.predicted_position.x, ts.predicted_position.y, ts.predicted_position.z), (p.x, p.y, p.z))
         b = ts.displacement_error_bound

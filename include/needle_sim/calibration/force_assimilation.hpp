@@ -124,6 +124,9 @@ class ForceAssimilation {
   // last one, whatever the spacing `every`.
   void append(const ForceRecord& rows);
   void setCommands(std::vector<RecordedCommand> commands);
+  // The targets set during the session so far (the node's ~set_target), replacing the
+  // settings': the next checkpoint's runs set them, and its prediction covers them.
+  void setTargetEdits(std::vector<TargetEdit> edits);
   void update(double t);
 
   const std::vector<CalibrationParameter>& parameters() const { return params_; }

@@ -54,6 +54,14 @@ struct CalibrationParameter {
   double tolerance = std::numeric_limits<double>::quiet_NaN();
 };
 
+// A target added or moved during a session (Simulation::setTarget: a name and its planning,
+// rest, position): every run of a fit sets it before its first step, as the session did, so
+// that the estimate's prediction covers it (the targets' order: the scene's, then those added).
+struct TargetEdit {
+  std::string name;
+  Vec3 planned = Vec3::Zero();
+};
+
 struct CalibrationSettings {
   std::string scene;
   std::vector<std::string> sets;  // fixed overrides
@@ -88,6 +96,8 @@ struct CalibrationSettings {
   // Set by another thread: every run stops at its next step (failed, "cancelled") and
   // calibrate() throws CalibrationCancelled (the node's estimator at shutdown or ~reset).
   const std::atomic<bool>* cancel = nullptr;
+  // Targets set during the session (the node's ~set_target), replayed in order on every run.
+  std::vector<TargetEdit> target_edits;
 };
 
 // The simulated axial force on the holder (observe()'s NeedleObservation::axial_force:
@@ -164,12 +174,14 @@ struct CalibrationCancelled : std::runtime_error {
 // with commands, they drive the needle (from its rest pose) for `until` seconds, through a
 // command pipeline with `limits`; with target_errors, the targets' discretisation error bounds
 // at the last step too; cancel set: the run stops at its next step (failed, "cancelled");
-// centre_line wanted: the needle's centre line at its points and steps.
+// centre_line wanted: the needle's centre line at its points and steps; target_edits set
+// before the first step.
 SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<std::string>& sets, int needle,
                                    double until, const std::vector<RecordedCommand>* commands = nullptr,
                                    bool target_errors = false, const CommandLimits& limits = CommandLimits{},
                                    const std::atomic<bool>* cancel = nullptr,
-                                   const CentreLineRequest& centre_line = CentreLineRequest{});
+                                   const CentreLineRequest& centre_line = CentreLineRequest{},
+                                   const std::vector<TargetEdit>& target_edits = {});
 
 // The run's centre line (SimulatedForce::shape) at time x, linearly between the recorded steps
 // (clamped at the ends); empty when none was recorded.

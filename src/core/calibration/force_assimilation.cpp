@@ -94,7 +94,7 @@ SimulatedForce ForceAssimilation::run(const std::vector<double>& v, double until
     c.spacing = data_.shape_spacing;
   }
   return simulateHolderForce(s_.fit.scene, sets, s_.fit.needle, until, &s_.fit.commands, target_errors, s_.fit.limits,
-                             s_.fit.cancel, c);
+                             s_.fit.cancel, c, s_.fit.target_edits);
 }
 
 int ForceAssimilation::advance(double t) {
@@ -148,6 +148,8 @@ void ForceAssimilation::append(const ForceRecord& rows) {
 }
 
 void ForceAssimilation::setCommands(std::vector<RecordedCommand> commands) { s_.fit.commands = std::move(commands); }
+
+void ForceAssimilation::setTargetEdits(std::vector<TargetEdit> edits) { s_.fit.target_edits = std::move(edits); }
 
 void ForceAssimilation::update(double t) {
   const double until = std::min(t, data_.t.back());

@@ -189,7 +189,7 @@ MeasurementWeights measurementWeights(const CalibrationSettings& s, const ForceR
 SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<std::string>& sets, int needle,
                                    double until, const std::vector<RecordedCommand>* commands, bool target_errors,
                                    const CommandLimits& limits, const std::atomic<bool>* cancel,
-                                   const CentreLineRequest& centre_line) {
+                                   const CentreLineRequest& centre_line, const std::vector<TargetEdit>& target_edits) {
   SimulatedForce r;
   Scene sc = loadScene(scene, sets);
   if (needle < 0 || needle >= static_cast<int>(sc.needles.size()))
@@ -207,6 +207,7 @@ SimulatedForce simulateHolderForce(const std::string& scene, const std::vector<s
     Simulation::Options so;
     so.target_errors = target_errors;
     Simulation sim(sc, so);
+    for (const TargetEdit& e : target_edits) sim.setTarget(e.name, e.planned);
     std::unique_ptr<CommandReplay> replay;
     if (replaying) replay = std::make_unique<CommandReplay>(sim, limits, *commands);
     const BasePose p0 = sim.needle(needle).trajectory().pose(0);
@@ -295,7 +296,8 @@ struct Problem {
     std::vector<std::string> sets = s->sets;
     for (const auto& o : parameterSets(p, v)) sets.push_back(o);
     try {
-      return simulateHolderForce(s->scene, sets, s->needle, until, &s->commands, false, s->limits, s->cancel, shape);
+      return simulateHolderForce(s->scene, sets, s->needle, until, &s->commands, false, s->limits, s->cancel, shape,
+                                 s->target_edits);
     } catch (const InputError& e) {  // a combination the scene rejects: a penalised point
       SimulatedForce f;
       f.failed = true;
