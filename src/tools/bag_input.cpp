@@ -6,10 +6,16 @@
 #include <geometry_msgs/WrenchStamped.h>
 #include <rosbag/bag.h>
 #include <rosbag/view.h>
+#ifdef NEEDLE_SIM_WITH_TF2
+#include <tf2/buffer_core.h>
+#include <tf2/exceptions.h>
+#include <tf2_msgs/TFMessage.h>
+#endif
 
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <memory>
 
 #include "needle_sim/core/error.hpp"
 
@@ -58,9 +64,46 @@ BagSession readBagSession(const std::string& path, const BagTopics& topics, int 
     rosbag::View view(bag, rosbag::TopicQuery(query));
     const ros::Time origin = view.getBeginTime();
     s.origin = origin.toSec();
-    const auto inTissue = [&](const std::string& frame, const std::string& topic) {
-      if (!frame.empty() && strip(frame) != strip(tissue_frame))
-        throw InputError(path, topic, "a measurement in frame '" + frame + "': give it in the tissue frame '" + tissue_frame + "'");
+    // Points measured in another frame (a tracker's, a shape sensor's) are brought into the
+    // tissue frame by the bag's own /tf and /tf_static at their stamps, as the node's tf does.
+#ifdef NEEDLE_SIM_WITH_TF2
+    std::unique_ptr<tf2::BufferCore> tf;
+    {
+      rosbag::View tv(bag, rosbag::TopicQuery(std::vector<std::string>{"/tf", "tf", "/tf_static", "tf_static"}));
+      if (tv.size() > 0) {
+        tf = std::make_unique<tf2::BufferCore>(ros::Duration((tv.getEndTime() - tv.getBeginTime()).toSec() + 10.0));
+        for (const rosbag::MessageInstance& m : tv) {
+          const auto msg = m.instantiate<tf2_msgs::TFMessage>();
+          if (!msg) throw InputError(path, m.getTopic(), "carries " + m.getDataType() + ", not tf2_msgs/TFMessage");
+          const bool is_static = strip(m.getTopic()) == "tf_static";
+          for (const auto& t : msg->transforms) tf->setTransform(t, "bag", is_static);
+        }
+      }
+    }
+#endif
+    // Returns the transform that takes a point in `frame` at `stamp` into the tissue frame.
+    const auto toTissue = [&](const std::string& frame, const ros::Time& stamp, double t,
+                              const std::string& topic) -> Eigen::Isometry3d {
+      if (frame.empty() || strip(frame) == strip(tissue_frame)) return Eigen::Isometry3d::Identity();
+#ifdef NEEDLE_SIM_WITH_TF2
+      if (tf) {
+        try {
+          const auto x = tf->lookupTransform(strip(tissue_frame), strip(frame), stamp);
+          const auto& q = x.transform.rotation;
+          const auto& v = x.transform.translation;
+          Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+          T.linear() = Eigen::Quaterniond(q.w, q.x, q.y, q.z).normalized().toRotationMatrix();
+          T.translation() = Vec3(v.x, v.y, v.z);
+          return T;
+        } catch (const tf2::TransformException& e) {
+          throw InputError(path, topic, "a measurement in frame '" + frame + "' at t = " + std::to_string(t) +
+                                            " s that the bag's /tf and /tf_static do not bring into the tissue frame '" +
+                                            tissue_frame + "': " + e.what());
+        }
+      }
+#endif
+      throw InputError(path, topic, "a measurement in frame '" + frame + "': the bag has no /tf or /tf_static to bring it into the tissue frame '" +
+                                        tissue_frame + "'");
     };
     for (const rosbag::MessageInstance& m : view) {
       const double received = (m.getTime() - origin).toSec();
@@ -102,20 +145,21 @@ BagSession readBagSession(const std::string& path, const BagTopics& topics, int 
         const std::string& name = tip ? topics.tip : topics.target;
         const auto q = m.instantiate<geometry_msgs::PointStamped>();
         if (!q) throw InputError(path, name, "carries " + m.getDataType() + ", not geometry_msgs/PointStamped");
-        inTissue(q->header.frame_id, name);
         MeasurementSample x;
         x.t = at(q->header.stamp);
         x.channel = tip ? 1 : 2;
-        x.point = Vec3(q->point.x, q->point.y, q->point.z);
+        const Eigen::Isometry3d T = toTissue(q->header.frame_id, q->header.stamp.isZero() ? m.getTime() : q->header.stamp, x.t, name);
+        x.point = T * Vec3(q->point.x, q->point.y, q->point.z);
         if (!x.point.allFinite()) throw InputError(path, name, "a non-finite position at t = " + std::to_string(x.t) + " s");
         measured.push_back(x);
       } else if (!topics.shape.empty() && topic == strip(topics.shape)) {
         const auto a = m.instantiate<geometry_msgs::PoseArray>();
         if (!a) throw InputError(path, topics.shape, "carries " + m.getDataType() + ", not geometry_msgs/PoseArray");
-        inTissue(a->header.frame_id, topics.shape);
         MeasurementSample x;
         x.t = at(a->header.stamp);
         x.channel = 3;
+        const Eigen::Isometry3d T =
+            toTissue(a->header.frame_id, a->header.stamp.isZero() ? m.getTime() : a->header.stamp, x.t, topics.shape);
         const size_t n = a->poses.size();
         if (n == 0) throw InputError(path, topics.shape, "a shape without poses at t = " + std::to_string(x.t) + " s");
         if (static_cast<double>(n - 1) * topics.shape_spacing > needle_length * (1 + 1e-9))
@@ -124,7 +168,7 @@ BagSession readBagSession(const std::string& path, const BagTopics& topics, int 
         // The last pose is the tip: the record's points run from the tip back.
         for (size_t i = n; i-- > 0;) {
           const auto& p = a->poses[i].position;
-          x.shape.emplace_back(p.x, p.y, p.z);
+          x.shape.push_back(T * Vec3(p.x, p.y, p.z));
           if (!x.shape.back().allFinite())
             throw InputError(path, topics.shape, "a non-finite position at t = " + std::to_string(x.t) + " s");
         }

@@ -4,9 +4,10 @@
 // and optionally measurements, as the node's measurement topics take them: the wrench
 // (geometry_msgs/WrenchStamped in the needle's base frame, x along the needle), the tracked
 // tip and a target's measured position (geometry_msgs/PointStamped), the needle's shape
-// (geometry_msgs/PoseArray, the last pose at the tip), these three in the tissue frame. Times
-// are seconds since the first message on any of the topics; each measurement at its stamp (at
-// its recording when unstamped).
+// (geometry_msgs/PoseArray, the last pose at the tip), these three in the tissue frame or in
+// a frame the bag's /tf and /tf_static bring into it at their stamps. Times are seconds since
+// the first message on any of the topics; each measurement at its stamp (at its recording when
+// unstamped).
 #include <string>
 
 #include "needle_sim/calibration/force_record.hpp"
@@ -33,8 +34,8 @@ struct BagSession {
 
 // Throws InputError naming the bag and the topic: unreadable bag, an empty topic, a topic of
 // another type, a topic given twice, a wrench that is not in a *_base frame, a point or shape
-// in a frame other than the tissue's (or empty), a non-finite value, a shape longer than
-// `needle_length`.
+// in a frame the bag's tf does not bring into the tissue's at its stamp, a non-finite value, a
+// shape longer than `needle_length`.
 #ifdef NEEDLE_SIM_WITH_ROSBAG
 BagSession readBagSession(const std::string& bag, const BagTopics& topics, int needle, double needle_length,
                           const std::string& tissue_frame = "tissue");

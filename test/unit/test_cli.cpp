@@ -751,8 +751,9 @@ TEST(Cli, RunAssimilateRejectsBadInputsAndWritesItsOutputs) {
 // nodes (its --out-bag's path, 2 mm apart, 30 Hz); with 50 um of noise they are the shape,
 // their last the tip. Read into rows of their own (channels axial_force, tip, shape), the
 // estimate within 10 % of the hidden value and consistent with the three noises, each shape's
-// innovation about its noise. A shape in another frame, a topic of another type or a shape
-// without --assimilate: exit 2, naming it.
+// innovation about its noise. The same tip and shapes in a tracker's frame, placed in the
+// tissue frame by the bag's /tf_static: the same estimate. A shape in a frame the bag's tf does
+// not know, a topic of another type or a shape without --assimilate: exit 2, naming it.
 TEST(Cli, RunAssimilatesABagsTipAndShape) {
 #ifdef NEEDLE_SIM_SANITIZED
   GTEST_SKIP() << "the estimator's runs of the whole session take minutes under the sanitizers";
@@ -760,17 +761,28 @@ TEST(Cli, RunAssimilatesABagsTipAndShape) {
   const fs::path d = freshDir("assimilate_bag_shape");
   const std::string scene = kSrc + "/config/scenes/phantom_insertion_8x4x4.yaml --set time.dt=0.002";
   const std::string session = kSrc + "/data/examples/phantom_insertion_session.bag";
-  const fs::path sim_bag = d / "patient.bag", merged = d / "merged.bag", world = d / "world.bag";
+  const fs::path sim_bag = d / "patient.bag", merged = d / "merged.bag", world = d / "world.bag",
+                 tracker = d / "tracker.bag";
   const Result p = runTool("run " + scene + " --set interaction.cutting_force=0.03 --set interaction.grip_pressure=400 --bag '" +
                            session + "' --pose-topic needle/command_pose --out-bag '" + sim_bag.string() + "' --quiet --out '" +
                            (d / "patient").string() + "'");
   ASSERT_EQ(p.status, 0) << p.err;
   const std::string py = capture(
       "/usr/bin/python3 -c \"import random, rosbag\n"
-      "from geometry_msgs.msg import Pose, PoseArray, PointStamped\n"
+      "from geometry_msgs.msg import Pose, PoseArray, PointStamped, TransformStamped\n"
+      "from tf2_msgs.msg import TFMessage\n"
+      "import copy\n"
       "rng = random.Random(3); n = 0\n"
       "m = rosbag.Bag('" + merged.string() + "', 'w'); w = rosbag.Bag('" + world.string() + "', 'w')\n"
-      "for tp, x, t in rosbag.Bag('" + session + "').read_messages(): m.write(tp, x, t); w.write(tp, x, t)\n"
+      "k = rosbag.Bag('" + tracker.string() + "', 'w'); first = None\n"
+      "for tp, x, t in rosbag.Bag('" + session + "').read_messages():\n"
+      "    m.write(tp, x, t); w.write(tp, x, t); k.write(tp, x, t); first = first or t\n"
+      "T = TransformStamped(); T.header.stamp = first; T.header.frame_id = 'tissue'; T.child_frame_id = 'tracker'\n"
+      "T.transform.translation.x, T.transform.translation.y, T.transform.translation.z = 0.1, -0.05, 0.02\n"
+      "T.transform.rotation.z, T.transform.rotation.w = 0.7071067811865476, 0.7071067811865476\n"
+      "k.write('/tf_static', TFMessage([T]), first)\n"
+      "def tracked(p):  # tissue -> tracker: R^T (p - t), R a quarter turn about z\n"
+      "    q = copy.deepcopy(p); x, y, z = p.x - 0.1, p.y + 0.05, p.z - 0.02; q.x, q.y, q.z = y, -x, z; return q\n"
       "for _, path, t in rosbag.Bag('" + sim_bag.string() + "').read_messages(['/needle_sim/needle/path']):\n"
       "    a = PoseArray(); a.header = path.header\n"
       "    for q in path.poses:\n"
@@ -779,8 +791,12 @@ TEST(Cli, RunAssimilatesABagsTipAndShape) {
       "        a.poses.append(p)\n"
       "    tip = PointStamped(); tip.header = path.header; tip.point = a.poses[-1].position\n"
       "    m.write('needle/shape', a, path.header.stamp); m.write('needle/tip', tip, path.header.stamp); n += 1\n"
+      "    b = copy.deepcopy(a); b.header.frame_id = 'tracker'\n"
+      "    for p in b.poses: p.position = tracked(p.position)\n"
+      "    u = copy.deepcopy(tip); u.header.frame_id = 'tracker'; u.point = tracked(tip.point)\n"
+      "    k.write('needle/shape', b, path.header.stamp); k.write('needle/tip', u, path.header.stamp)\n"
       "    a.header.frame_id = 'world'; w.write('needle/shape', a, path.header.stamp)\n"
-      "m.close(); w.close(); print(n)\"");
+      "m.close(); w.close(); k.close(); print(n)\"");
   const int shapes = std::atoi(py.c_str());
   ASSERT_GT(shapes, 100) << py;
   const std::string topics = " --pose-topic needle/command_pose --wrench-topic needle/wrench --tip-topic needle/tip "
@@ -816,6 +832,18 @@ TEST(Cli, RunAssimilatesABagsTipAndShape) {
   std::ifstream oj(d / "one" / "summary.json");
   const nlohmann::json o = nlohmann::json::parse(oj);
   EXPECT_FALSE(o.at("assimilation").at("consistent").get<bool>()) << o.at("assimilation").dump();
+  // The same measurements in a tracker's frame, which the bag's /tf_static places in the
+  // tissue frame: the same estimate (the points differ from the first bag's by round-off).
+  const Result k = runTool("run " + scene + " --bag '" + tracker.string() + "'" + topics +
+                           " --assimilate interaction.cutting_force --noise 0.0005 --tip-noise 5e-5 --shape-noise 5e-5 "
+                           "--assimilate-every 10 --quiet --out '" + (d / "k").string() + "'");
+  ASSERT_EQ(k.status, 0) << k.err;
+  std::ifstream kj(d / "k" / "summary.json");
+  const nlohmann::json kk = nlohmann::json::parse(kj);
+  const auto value = [](const nlohmann::json& x) {
+    return x.at("assimilation").at("parameters").at("interaction.cutting_force").at("value").get<double>();
+  };
+  EXPECT_NEAR(value(kk), value(o), 1e-6 * value(o));
   for (const auto& [args, why] : std::vector<std::pair<std::string, std::string>>{
            {" --bag '" + world.string() + "' --pose-topic needle/command_pose --wrench-topic needle/wrench --shape-topic "
                 "needle/shape --shape-spacing 0.002" + estimate + (d / "w").string() + "'", "tissue frame"},
