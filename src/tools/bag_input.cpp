@@ -21,6 +21,16 @@
 
 namespace needle_sim {
 
+#ifdef NEEDLE_SIM_WITH_TF2
+namespace {
+Eigen::Isometry3d isometry(const geometry_msgs::Transform& x) {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = Eigen::Quaterniond(x.rotation.w, x.rotation.x, x.rotation.y, x.rotation.z).normalized().toRotationMatrix();
+  T.translation() = Vec3(x.translation.x, x.translation.y, x.translation.z);
+  return T;
+}
+}  // namespace
+#endif
 
 BagSession readBagSession(const std::string& path, const BagTopics& topics, int needle, double needle_length,
                           const std::string& tissue_frame) {
@@ -88,13 +98,7 @@ BagSession readBagSession(const std::string& path, const BagTopics& topics, int 
 #ifdef NEEDLE_SIM_WITH_TF2
       if (tf) {
         try {
-          const auto x = tf->lookupTransform(strip(tissue_frame), strip(frame), stamp);
-          const auto& q = x.transform.rotation;
-          const auto& v = x.transform.translation;
-          Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-          T.linear() = Eigen::Quaterniond(q.w, q.x, q.y, q.z).normalized().toRotationMatrix();
-          T.translation() = Vec3(v.x, v.y, v.z);
-          return T;
+          return isometry(tf->lookupTransform(strip(tissue_frame), strip(frame), stamp).transform);
         } catch (const tf2::TransformException& e) {
           throw InputError(path, topic, "a measurement in frame '" + frame + "' at t = " + std::to_string(t) +
                                             " s that the bag's /tf and /tf_static do not bring into the tissue frame '" +
@@ -124,8 +128,24 @@ BagSession readBagSession(const std::string& path, const BagTopics& topics, int 
         // Who sent it (the connection header's caller id, as the node reads it): two recorded
         // sources on one needle replay with the node's rule owner.
         c.command.source = m.getCallerId();
-        if (p->header.frame_id.empty()) c.frame_rule = GuardRule::EmptyFrame;
-        else if (strip(p->header.frame_id) != strip(tissue_frame)) c.frame_rule = GuardRule::Frame;
+        if (p->header.frame_id.empty()) {
+          c.frame_rule = GuardRule::EmptyFrame;
+        } else if (strip(p->header.frame_id) != strip(tissue_frame)) {
+          // Another frame: through the bag's tf at the pose's stamp, as the node's tf takes a
+          // command; one it does not resolve is refused by rule `frame`, as the node does.
+          c.frame_rule = GuardRule::Frame;
+#ifdef NEEDLE_SIM_WITH_TF2
+          if (tf) try {
+              const auto x = tf->lookupTransform(strip(tissue_frame), strip(p->header.frame_id),
+                                                 p->header.stamp.isZero() ? m.getTime() : p->header.stamp);
+              const Eigen::Isometry3d T = isometry(x.transform);
+              c.command.position = T * c.command.position;
+              c.command.orientation = Eigen::Quaterniond(T.linear()) * c.command.orientation;
+              c.frame_rule = GuardRule::NonFinite;  // (the sentinel: in the tissue frame now)
+            } catch (const tf2::TransformException&) {
+            }
+#endif
+        }
         s.commands.push_back(c);
       } else if (!topics.wrench.empty() && topic == strip(topics.wrench)) {
         const auto w = m.instantiate<geometry_msgs::WrenchStamped>();

@@ -751,8 +751,8 @@ TEST(Cli, RunAssimilateRejectsBadInputsAndWritesItsOutputs) {
 // nodes (its --out-bag's path, 2 mm apart, 30 Hz); with 50 um of noise they are the shape,
 // their last the tip. Read into rows of their own (channels axial_force, tip, shape), the
 // estimate within 10 % of the hidden value and consistent with the three noises, each shape's
-// innovation about its noise. The same tip and shapes in a tracker's frame, placed in the
-// tissue frame by the bag's /tf_static: the same estimate. A shape in a frame the bag's tf does
+// innovation about its noise. The same tip, shapes and commanded poses in a tracker's frame,
+// placed in the tissue frame by the bag's /tf_static: the same estimate. A shape in a frame the bag's tf does
 // not know, a topic of another type or a shape without --assimilate: exit 2, naming it.
 TEST(Cli, RunAssimilatesABagsTipAndShape) {
 #ifdef NEEDLE_SIM_SANITIZED
@@ -775,14 +775,22 @@ TEST(Cli, RunAssimilatesABagsTipAndShape) {
       "rng = random.Random(3); n = 0\n"
       "m = rosbag.Bag('" + merged.string() + "', 'w'); w = rosbag.Bag('" + world.string() + "', 'w')\n"
       "k = rosbag.Bag('" + tracker.string() + "', 'w'); first = None\n"
+      "def tracked(p):  # tissue -> tracker: R^T (p - t), R a quarter turn about z\n"
+      "    q = copy.deepcopy(p); x, y, z = p.x - 0.1, p.y + 0.05, p.z - 0.02; q.x, q.y, q.z = y, -x, z; return q\n"
+      "def turned(q):  # R^T q: a quarter turn back about z\n"
+      "    c = 0.7071067811865476; r = copy.deepcopy(q)\n"
+      "    r.w, r.x, r.y, r.z = c * q.w + c * q.z, c * q.x + c * q.y, c * q.y - c * q.x, c * q.z - c * q.w; return r\n"
       "for tp, x, t in rosbag.Bag('" + session + "').read_messages():\n"
-      "    m.write(tp, x, t); w.write(tp, x, t); k.write(tp, x, t); first = first or t\n"
+      "    m.write(tp, x, t); w.write(tp, x, t); first = first or t\n"
+      "    if tp.lstrip('/') == 'needle/command_pose':\n"
+      "        x = copy.deepcopy(x); x.header.frame_id = 'tracker'\n"
+      "        x.pose.position = tracked(x.pose.position); x.pose.orientation = turned(x.pose.orientation)\n"
+      "    k.write(tp, x, t)\n"
       "T = TransformStamped(); T.header.stamp = first; T.header.frame_id = 'tissue'; T.child_frame_id = 'tracker'\n"
       "T.transform.translation.x, T.transform.translation.y, T.transform.translation.z = 0.1, -0.05, 0.02\n"
       "T.transform.rotation.z, T.transform.rotation.w = 0.7071067811865476, 0.7071067811865476\n"
       "k.write('/tf_static', TFMessage([T]), first)\n"
-      "def tracked(p):  # tissue -> tracker: R^T (p - t), R a quarter turn about z\n"
-      "    q = copy.deepcopy(p); x, y, z = p.x - 0.1, p.y + 0.05, p.z - 0.02; q.x, q.y, q.z = y, -x, z; return q\n"
+
       "for _, path, t in rosbag.Bag('" + sim_bag.string() + "').read_messages(['/needle_sim/needle/path']):\n"
       "    a = PoseArray(); a.header = path.header\n"
       "    for q in path.poses:\n"
@@ -832,8 +840,9 @@ TEST(Cli, RunAssimilatesABagsTipAndShape) {
   std::ifstream oj(d / "one" / "summary.json");
   const nlohmann::json o = nlohmann::json::parse(oj);
   EXPECT_FALSE(o.at("assimilation").at("consistent").get<bool>()) << o.at("assimilation").dump();
-  // The same measurements in a tracker's frame, which the bag's /tf_static places in the
-  // tissue frame: the same estimate (the points differ from the first bag's by round-off).
+  // The same measurements and commanded poses in a tracker's frame, which the bag's
+  // /tf_static places in the tissue frame: the same estimate (they differ from the first
+  // bag's by round-off).
   const Result k = runTool("run " + scene + " --bag '" + tracker.string() + "'" + topics +
                            " --assimilate interaction.cutting_force --noise 0.0005 --tip-noise 5e-5 --shape-noise 5e-5 "
                            "--assimilate-every 10 --quiet --out '" + (d / "k").string() + "'");

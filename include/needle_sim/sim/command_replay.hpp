@@ -17,7 +17,8 @@ class Simulation;
 // One recorded command: the needle it drives, when it was received [s since the recording's
 // start], the pose as sent (in the tissue frame) with its stamp in the same seconds;
 // frame_rule: Frame or EmptyFrame when it was given in a frame the replay cannot transform
-// (no tf offline) or in none (counted under that rule, rejected, as by the node);
+// (one the bag's tf does not resolve) or in none (counted under that rule, rejected, as by the
+// node);
 // NonFinite (the default) when its frame is the tissue frame.
 struct RecordedCommand {
   int needle = 0;
