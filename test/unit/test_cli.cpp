@@ -831,24 +831,23 @@ TEST(Cli, RunAssimilatesABagsTipAndShape) {
   std::nth_element(rms.begin(), rms.begin() + rms.size() / 2, rms.end());
   EXPECT_NEAR(rms[rms.size() / 2], 5e-5, 2e-5);
   EXPECT_EQ(in["points"].front(), "17");
-  // The cutting force alone, the grip left at the scene's: the force's residuals are about
-  // twice its noise; among the shapes' points, which fit, the pooled RMS is not.
-  const Result one = runTool("run " + scene + " --bag '" + merged.string() + "'" + topics +
+  // The cutting force alone from `bag` into DIR/`out`: its summary.json.
+  const auto cuttingOnly = [&](const fs::path& bag, const std::string& out) {
+    const Result r = runTool("run " + scene + " --bag '" + bag.string() + "'" + topics +
                              " --assimilate interaction.cutting_force --noise 0.0005 --tip-noise 5e-5 --shape-noise 5e-5 "
-                             "--assimilate-every 10 --quiet --out '" + (d / "one").string() + "'");
-  ASSERT_EQ(one.status, 0) << one.err;
-  std::ifstream oj(d / "one" / "summary.json");
-  const nlohmann::json o = nlohmann::json::parse(oj);
+                             "--assimilate-every 10 --quiet --out '" + (d / out).string() + "'");
+    EXPECT_EQ(r.status, 0) << r.err;
+    std::ifstream f(d / out / "summary.json");
+    return nlohmann::json::parse(f);
+  };
+  // The grip left at the scene's: the force's residuals are about twice its noise; among the
+  // shapes' points, which fit, the pooled RMS is not.
+  const nlohmann::json o = cuttingOnly(merged, "one");
   EXPECT_FALSE(o.at("assimilation").at("consistent").get<bool>()) << o.at("assimilation").dump();
   // The same measurements and commanded poses in a tracker's frame, which the bag's
   // /tf_static places in the tissue frame: the same estimate (they differ from the first
   // bag's by round-off).
-  const Result k = runTool("run " + scene + " --bag '" + tracker.string() + "'" + topics +
-                           " --assimilate interaction.cutting_force --noise 0.0005 --tip-noise 5e-5 --shape-noise 5e-5 "
-                           "--assimilate-every 10 --quiet --out '" + (d / "k").string() + "'");
-  ASSERT_EQ(k.status, 0) << k.err;
-  std::ifstream kj(d / "k" / "summary.json");
-  const nlohmann::json kk = nlohmann::json::parse(kj);
+  const nlohmann::json kk = cuttingOnly(tracker, "k");
   const auto value = [](const nlohmann::json& x) {
     return x.at("assimilation").at("parameters").at("interaction.cutting_force").at("value").get<double>();
   };
