@@ -87,6 +87,28 @@ class Figures(unittest.TestCase):
         self.assertIn("the doc quotes 0.1, the run gives 0.25", r.stderr)
 
 
+
+    def test_a_bound_holds_the_run_under_it_and_takes_no_tolerance(self):
+        r, _ = run_page("""
+            ```bash
+            echo "computed in 0.25 s"
+            ```
+
+            In less than 1<!-- = num(OUT('computed in'), r'computed in ([\\d.]+) s') ≥ --> s, not
+            less than 0.2<!-- = num(OUT('computed in'), r'computed in ([\\d.]+) s') ≥ --> s.
+            """)
+        self.assertEqual(r.returncode, 1)
+        self.assertIn("| 1 | 0.25 | at most the quoted figure | ok |", r.stdout)
+        self.assertIn("the doc quotes 0.2, the run gives 0.25 (at most the quoted figure)", r.stderr)
+        r, _ = run_page("""
+            ```bash
+            true
+            ```
+
+            Under 1<!-- = 0.5 ≥ 2 --> s.
+            """)
+        self.assertNotEqual(r.returncode, 0)
+        self.assertIn("page.md:6: ± and × take a tolerance, ≥ none", r.stdout + r.stderr)
 class Blocks(unittest.TestCase):
     def test_a_failing_command_fails_the_page_and_stops_it(self):
         r, root = run_page("""

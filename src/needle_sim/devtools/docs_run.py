@@ -27,7 +27,8 @@ The expression is Python with J(path) (a JSON file), CSV(path) (columns as lists
 num(text, regex) (the numbers the regex's group matches: all, or the last), median(list), mean(list), and
 T(block, row, column) (a cell of a generated table of doc/benchmarks.md: row is the first
 cells, a string or a tuple) and column(block, column) (a list). Tolerances: ±P% (relative), ±X (absolute), ×F (within a factor,
-for wall times on a shared machine). A figure whose source a skipped or --full-only block
+for wall times on a shared machine), ≥ (the quoted figure is a bound the run stays under: for
+the wall time of work at idle priority, which takes what the rest of the machine leaves). A figure whose source a skipped or --full-only block
 makes is reported unchecked in the short run and checked in the --full one. The report
 (--report) lists every block with its wall time and every figure with quoted and found
 values.
@@ -55,7 +56,7 @@ OUTPUTS = {}  # page -> [(block body, its output)] of the blocks run
 FENCE = re.compile(r"^```(\w*)\s*$")
 DIRECTIVE = re.compile(r"^<!--\s*docs:\s*(skip|full|short|edit|background)\b\s*(.*?)\s*-->\s*$")
 NUMBER = r"[−-]?\d[\d,]*(?:\.\d+)?(?:e[−-]?\d+)?"
-FIGURE = re.compile(r"(" + NUMBER + r")<!--\s*=\s*(.+?)\s+(±|×)\s*([\d.eE+-]+)(%?)\s*-->", re.S)
+FIGURE = re.compile(r"(" + NUMBER + r")<!--\s*=\s*(.+?)\s+(±|×|≥)\s*([\d.eE+-]*)(%?)\s*-->", re.S)
 
 
 class Block:
@@ -106,7 +107,9 @@ def figures(page):
         line = text.count("\n", 0, m.start()) + 1
         if text[text.rfind("\n", 0, m.start()) + 1:m.start()].count("`") % 2:
             continue  # inside an inline code span: the syntax shown, not a figure
-        yield line, m.group(1), m.group(2), m.group(3), float(m.group(4)), m.group(5) == "%"
+        if (m.group(3) == "≥") != (m.group(4) == ""):
+            raise SystemExit("%s:%d: ± and × take a tolerance, ≥ none" % (page, line))
+        yield line, m.group(1), m.group(2), m.group(3), float(m.group(4) or "nan"), m.group(5) == "%"
 
 
 def value(s):
@@ -180,7 +183,10 @@ def check_figure(page, quoted, expr, op, tol, rel):
            "min": min, "round": round, "len": len, "sum": sum}
     found = float(eval(expr, env))  # the docs' own expressions, from this checkout
     q = value(quoted)
-    if op == "×":
+    if op == "≥":
+        ok = found <= q
+        stated = "at most the quoted figure"
+    elif op == "×":
         ok = found != 0 and q != 0 and max(q / found, found / q) <= tol and (q > 0) == (found > 0)
         stated = "within a factor %g" % tol
     else:
