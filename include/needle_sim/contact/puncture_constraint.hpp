@@ -29,9 +29,24 @@ class PunctureConstraint : public ContactConstraint {
   double normalForce() const { return lambda[0]; }
   double friction() const { return friction_; }
   void setFriction(double friction) { friction_ = friction; }  // adopted during a run
+  // The touch's impact (needle_tissue_interaction.cpp): while the point carries no normal
+  // force the impulse that brings the surface to the tip's approach speed, m v, is armed; the
+  // first loaded steps' forces spend it (rigid contact stops the surface within a step or a
+  // few), and what they spend does not count against the puncture strength.
+  bool wasLoaded() const { return was_loaded_; }
+  void setWasLoaded(bool loaded) { was_loaded_ = loaded; }
+  void armImpact(double impulse) { impulse_left_ = impulse; }
+  // This step's share of the impact [N] from its normal force and step h, spent from what is left.
+  void spendImpact(double h) {
+    impact_ = h > 0 ? std::min(std::max(0.0, lambda[0]) * h, impulse_left_) / h : 0.0;
+    impulse_left_ -= impact_ * h;
+  }
+  double impact() const { return impact_; }
 
  private:
   double friction_;
+  bool was_loaded_ = false;
+  double impulse_left_ = 0, impact_ = 0;
 };
 
 }  // namespace needle_sim
