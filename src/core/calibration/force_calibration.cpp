@@ -481,6 +481,10 @@ CalibrationResult calibrate(const CalibrationSettings& s, const ForceRecord& dat
   r.evaluations = pr.evaluations;
   r.failed_evaluations = pr.failed;
   r.fitted_run = pr.run(r.values);
+  if (r.fitted_run.failed) {  // cancelled after the optimiser stopped: its samples end early
+    if (s.cancel && s.cancel->load()) throw CalibrationCancelled();
+    throw NumericalError(0, "the simulation fails at the fitted values: " + r.fitted_run.failure);
+  }
   const VecX rf = pr.residuals(r.fitted_run, &r.residual_row, &r.residual_channel, &r.target_offsets);
   for (const Vec3& o : r.target_offsets) r.offset_parameters += o.allFinite() ? 3 : 0;
   r.rms = std::sqrt(rf.squaredNorm() / r.residuals);
