@@ -87,6 +87,9 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   pnh.param("needle_base_frame", p.needle_base_frame, p.needle_base_frame);
   pnh.param("allow_empty_frame", p.allow_empty_frame, p.allow_empty_frame);
   pnh.param("wrench_frame", p.wrench_frame, p.wrench_frame);
+  pnh.param("wrench_rate", p.wrench_rate, p.wrench_rate);
+  if (!(p.wrench_rate >= 0) || !std::isfinite(p.wrench_rate))
+    throw InputError("", "~wrench_rate", "must be >= 0 and finite [Hz] (0: once per step)");
   if (p.wrench_frame != "base" && p.wrench_frame != "tissue")
     throw InputError("", "~wrench_frame", "must be base or tissue, got '" + p.wrench_frame + "'");
 

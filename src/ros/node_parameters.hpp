@@ -27,6 +27,9 @@ struct NodeParameters {
   std::string needle_base_frame;         // tf commands, one needle: the base frame to follow
   bool allow_empty_frame = false;        // an empty frame_id means ~tissue_frame
   std::string wrench_frame = "base";     // base (<needle>_base) | tissue
+  // ~<needle>/wrench between the steps of a scene slower than this [Hz] (the wall-clock pace
+  // only; 0: once per step): extrapolated from the base's motion (needle/holder_wrench.hpp).
+  double wrench_rate = 1000;
   CommandLimits limits;                  // workspace box filled from the scene
   // ~<limit>_ceiling: start-up only; no limit above them, at start-up or by reconfigure.
   LimitCeilings ceilings;

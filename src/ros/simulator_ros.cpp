@@ -152,6 +152,10 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   // /use_sim_time (a bag's clock) or with tf lookups each tick, the timer drives it.
   self_paced_ = !P.as_fast_as_possible && !ros::Time::isSimTime() && base_frames_.empty();
   thread_ = self_paced_ ? std::thread(&SimulatorRos::pacedWorker, this) : std::thread(&SimulatorRos::worker, this);
+  if (self_paced_ && P.wrench_rate > 0 && 1 / P.wrench_rate < scene_.dt) {
+    wrench_period_ = 1 / P.wrench_rate;
+    wrench_thread_ = std::thread(&SimulatorRos::wrenchLoop, this);
+  }
   if (!P.as_fast_as_possible && !self_paced_)
     timer_ = nh_.createTimer(ros::Duration(scene_.dt), &SimulatorRos::onTimer, this);
   ROS_INFO("needle_sim: scene '%s' (%s), %d DOFs, dt %g s, commands from %s, interface under %s", scene_.name.c_str(),
@@ -181,6 +185,12 @@ SimulatorRos::~SimulatorRos() {
   }
   wake_.notify_all();
   if (thread_.joinable()) thread_.join();
+  {
+    std::lock_guard<std::mutex> lk(wrench_mutex_);
+    wrench_stop_ = true;
+  }
+  wrench_cv_.notify_all();
+  if (wrench_thread_.joinable()) wrench_thread_.join();
   // Its subscriptions and its thread, once the stepping thread (which feeds it every step) and
   // the diagnostics (which read it) are done (found by ThreadSanitizer: the node-threads test).
   assimilation_.reset();
@@ -207,6 +217,12 @@ void SimulatorRos::load() {
     errors_step_ = -1;
   }
   last_error_time_ = -1e300;
+  wrench_models_.clear();  // a new scene: no slope from the old one's last step
+  {
+    std::lock_guard<std::mutex> lk(wrench_mutex_);
+    wrench_table_.ticks.clear();
+    wrench_table_.step.clear();
+  }
   names_ = std::make_shared<const ObservableNames>(observableNames(*sim_));
   if (!pipeline_) {
     pipeline_ = std::make_unique<CommandPipeline>(*sim_, params_->limits, params_->ceilings, "~");
@@ -422,6 +438,11 @@ void SimulatorRos::stepOnce() {
       watchTipSpeed();
     } catch (const NumericalError& e) {
       failure_ = e.what();
+      {
+        std::lock_guard<std::mutex> lk(wrench_mutex_);
+        wrench_table_.ticks.clear();  // nothing more between steps
+        wrench_table_.step.clear();
+      }
       ROS_ERROR("needle_sim: numerical failure, stepping stopped until ~reset: %s", e.what());
     }
     ms = (ros::WallTime::now() - t0).toSec() * 1e3;

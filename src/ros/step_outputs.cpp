@@ -6,9 +6,12 @@
 #include <needle_sim/TargetState.h>
 
 #include <algorithm>
+#include <chrono>
+#include <cmath>
 #include <cstdio>
 
 #include "conversions.hpp"
+#include "needle_sim/core/background_priority.hpp"
 #include "node_assimilation.hpp"
 #include "display_outputs.hpp"
 #include "insert_action.hpp"
@@ -47,6 +50,7 @@ void SimulatorRos::publishStep(double ms) {
   f.display_range = display_->range();
   if (failure_.empty()) {  // never publish a state that failed: the status alone
     observe(*sim_, obs_);
+    if (wrench_period_ > 0) tabulateWrenches(f.stamp);
     updateTargetErrors();
     f.obs = obs_;
     f.primary_target = std::min(primary_target_, sim_->numTargets() - 1);
@@ -72,11 +76,110 @@ void SimulatorRos::publishStep(double ms) {
   }
 }
 
+void SimulatorRos::tabulateWrenches(const ros::Time& stamp) {
+  // The models follow every step (a slope needs the step before); the table only when heard.
+  wrench_models_.resize(obs_.needles.size());
+  const double t0 = sim_->time();
+  for (size_t i = 0; i < obs_.needles.size(); ++i) {
+    const NeedleObservation& n = obs_.needles[i];
+    wrench_models_[i].afterStep(sim_->needle(static_cast<int>(i)).trajectory().pose(t0).position, n.holder_force,
+                                n.holder_moment, n.constraints);
+  }
+  bool heard = false;
+  for (const auto& pub : wrench_pubs_) heard = heard || pub.getNumSubscribers() > 0;
+  WrenchTable table;
+  table.stamp = stamp;
+  if (heard && wrench_pubs_.size() == obs_.needles.size()) {
+    const bool in_base = params_->wrench_frame == "base";
+    auto frame = [&](size_t i, const Vec3& f, const Vec3& m) {  // as wrenchMessage
+      const Eigen::Quaterniond to_base = obs_.needles[i].base_frame.conjugate();
+      return std::make_pair(in_base ? Vec3(to_base * f) : f, in_base ? Vec3(to_base * m) : m);
+    };
+    for (size_t i = 0; i < obs_.needles.size(); ++i) {
+      table.frames.push_back(in_base ? names_->needles[i] + "_base" : params_->tissue_frame);
+      table.step.push_back(frame(i, obs_.needles[i].holder_force, obs_.needles[i].holder_moment));
+    }
+    const int ticks = static_cast<int>(std::ceil(2 * sim_->dt() / wrench_period_ - 1e-9));
+    table.ticks.resize(ticks);
+    for (int j = 1; j <= ticks; ++j)
+      for (size_t i = 0; i < obs_.needles.size(); ++i) {
+        Vec3 f, m;
+        wrench_models_[i].at(sim_->needle(static_cast<int>(i)).trajectory().pose(t0 + j * wrench_period_).position, f, m);
+        table.ticks[j - 1].push_back(frame(i, f, m));
+      }
+  }
+  {
+    std::lock_guard<std::mutex> lk(wrench_mutex_);
+    table.seq = wrench_table_.seq + 1;
+    table.made = std::chrono::steady_clock::now();
+    wrench_table_ = std::move(table);
+  }
+  wrench_cv_.notify_one();
+}
+
+void SimulatorRos::wrenchLoop() {
+  nameThisThread("ns_wrench");
+  // Never before the stepping thread (background_priority.hpp): on two cores, at nice 0 or
+  // 10, the stream made 5-8 % of the gel demo's steps late with 500 Hz poses and every output
+  // subscribed (0.3-0.7 % without it); idle, it takes what a core leaves.
+  idleThisThread();
+  using clock = std::chrono::steady_clock;
+  const auto period = std::chrono::duration_cast<clock::duration>(std::chrono::duration<double>(wrench_period_));
+  auto next = clock::now() + period;
+  clock::time_point step_sent;
+  long sent = 0;      // the table whose step row went out
+  ros::Time last;     // the last stamp sent
+  ros::Time stamp;
+  for (;;) {
+    std::vector<std::string> frames;
+    std::vector<std::pair<Vec3, Vec3>> row;
+    {
+      std::unique_lock<std::mutex> lk(wrench_mutex_);
+      auto woken = [&] { return wrench_stop_ || wrench_table_.seq != sent; };
+      bool step = true;
+      if (wrench_table_.ticks.empty())  // nobody listens (or a failure): no tick to send, none to wake for
+        wrench_cv_.wait(lk, woken);
+      else
+        step = wrench_cv_.wait_until(lk, next, woken);
+      if (wrench_stop_) return;
+      const WrenchTable& w = wrench_table_;
+      const auto now = clock::now();
+      if (step) {  // a step: its own wrench, at once, stamped as its status
+        sent = w.seq;
+        step_sent = now;
+        row = w.step;
+        stamp = w.stamp;
+      } else {
+        next += period;
+        if (next < now) next = now + period;  // after a stall: on, not a burst
+        if (now - step_sent < period / 2) continue;  // a step's row just went
+        // The row of the time since the step was tabulated; none past two steps (stalled).
+        const long j = std::lround(std::chrono::duration<double>(now - w.made) / std::chrono::duration<double>(period));
+        if (j < 1 || j > static_cast<long>(w.ticks.size())) continue;
+        stamp = w.stamp + ros::Duration(static_cast<double>(j) * wrench_period_);
+        if (stamp <= last) continue;  // in order
+        row = w.ticks[j - 1];
+      }
+      frames = w.frames;
+    }
+    last = std::max(last, stamp);
+    for (size_t i = 0; i < row.size() && i < wrench_pubs_.size(); ++i) {
+      geometry_msgs::WrenchStamped m;
+      m.header.stamp = stamp;
+      m.header.frame_id = frames[i];
+      m.wrench.force = toVector(row[i].first);
+      m.wrench.torque = toVector(row[i].second);
+      wrench_pubs_[i].publish(m);
+    }
+  }
+}
+
 void SimulatorRos::sendStep(const StepFrame& f) {
   status_pub_.publish(statusMessage(f, params_->tissue_frame));
   if (!f.failure.empty()) return;
-  for (size_t i = 0; i < f.obs.needles.size(); ++i)
-    wrench_pubs_[i].publish(wrenchMessage(f, static_cast<int>(i), params_->wrench_frame == "base", params_->tissue_frame));
+  if (wrench_period_ == 0)  // else wrenchLoop sends them, between the steps too
+    for (size_t i = 0; i < f.obs.needles.size(); ++i)
+      wrench_pubs_[i].publish(wrenchMessage(f, static_cast<int>(i), params_->wrench_frame == "base", params_->tissue_frame));
   if (f.send_target_point) {
     geometry_msgs::PointStamped ps;
     ps.header.stamp = f.stamp;

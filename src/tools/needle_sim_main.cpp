@@ -356,6 +356,10 @@ int main(int argc, char** argv) {
   run->add_option("--set", sets, "override a scene value: key.path=value (repeatable)");
   run->add_flag("--quiet,-q", quiet, "no progress on stderr");
   run->add_flag("--centerline", rec_opts.centerline, "also write DIR/centerline.csv: every needle node at every step");
+  run->add_option("--wrench-rate", rec_opts.wrench_rate,
+                  "also write DIR/wrench.csv: every needle's force and moment on its holder at this rate [Hz], "
+                  "between the steps extrapolated from the commanded base motion (as the node's ~wrench_rate)")
+      ->check(CLI::Range(0.0, 1e6));
   run->add_flag("--error-estimate", rec_opts.error_estimate,
                 "SPR error estimate of the tissue every step (eta_global, eta_max, eta_relative columns)");
   run->add_flag("--vtu", rec_opts.vtu, "also write DIR/tissue.vtu: the final mesh with displacement, von Mises stress, eta");
@@ -384,7 +388,7 @@ int main(int argc, char** argv) {
   run->add_option("--out-bag-ns", bag_run.out_ns, "... under this namespace (the node's name)")->capture_default_str();
   run->add_option("--vtu-every", rec_opts.vtu_every,
                   "a ParaView series every N steps: DIR/vtu/, DIR/tissue.pvd, DIR/needles.pvd (0: none)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(CLI::Range(0.0, 1e6));
   AssimilateOptions assimilate;
   run->add_option("--assimilate", assimilate.keys,
                   "estimate these scene keys (comma-separated) online from the measured holder force (--data, or "

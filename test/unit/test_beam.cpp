@@ -6,6 +6,7 @@
 
 #include "needle_sim/needle/base_trajectory.hpp"
 #include "needle_sim/needle/corotational_beam.hpp"
+#include "needle_sim/needle/holder_wrench.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/needle/needle_body.hpp"
 #include "needle_sim/needle/trajectory_replan.hpp"
@@ -460,4 +461,45 @@ TEST(TrajectoryReplan, RigidAimPutsThePlannedFinalTipOnTheTarget) {
   const NeedleParameters s = rigidlyMoved(side, rigidAim(side, entry, target));
   EXPECT_EQ(plannedFinalTip(side).keyframe, 1);
   EXPECT_LT((tip(s, 1) - target).norm(), 1e-15);
+}
+
+// The holder's wrench between steps: a wrench linear in the base's position along its motion
+// is extrapolated exactly (any point of the next step, and past it); a step that changed the
+// constraint points, or a base that stood still, gives the step's wrench held.
+TEST(HolderWrench, ExtrapolatesALinearLawAlongTheMotionAndHoldsAfterAnEvent) {
+  const Vec3 dir = Vec3(1, -2, 2) / 3, k_f(-3, 0.5, 2), k_m(0.1, -0.2, 0.05);  // N/m, N m/m
+  const Vec3 f0(0.01, 0.02, -0.03), m0(1e-3, 0, -2e-3), lateral = Vec3(2, 1, 0) / std::sqrt(5.0);
+  auto force = [&](const Vec3& x) { return Vec3(f0 + k_f * dir.dot(x)); };
+  auto moment = [&](const Vec3& x) { return Vec3(m0 + k_m * dir.dot(x)); };
+  HolderWrenchExtrapolation w;
+  Vec3 f, m;
+  const double h = 1e-4;  // base advance per step [m]
+  for (int step = 0; step < 3; ++step) {
+    const Vec3 x = step * h * dir;
+    w.afterStep(x, force(x), moment(x), 4);
+  }
+  ASSERT_TRUE(w.extrapolates());
+  for (double s : {0.1, 0.5, 0.9, 1.0, 1.5}) {
+    const Vec3 x = (2 + s) * h * dir + 3e-5 * lateral;  // off the line: only the motion's part counts
+    w.at(x, f, m);
+    EXPECT_NEAR((f - force(x)).norm(), 0.0, 1e-15) << s;
+    EXPECT_NEAR((m - moment(x)).norm(), 0.0, 1e-15) << s;
+  }
+  // A shaft point laid in the step: its jump is not the motion's; held until the next step.
+  const Vec3 x3 = 3 * h * dir, jump(0, 0, 0.03);
+  w.afterStep(x3, force(x3) + jump, moment(x3), 5);
+  EXPECT_FALSE(w.extrapolates());
+  w.at(3.5 * h * dir, f, m);
+  EXPECT_EQ(f, force(x3) + jump);
+  EXPECT_EQ(m, moment(x3));
+  // The next step without an event extrapolates again, from the new level.
+  const Vec3 x4 = 4 * h * dir;
+  w.afterStep(x4, force(x4) + jump, moment(x4), 5);
+  w.at(4.5 * h * dir, f, m);
+  EXPECT_NEAR((f - force(4.5 * h * dir) - jump).norm(), 0.0, 1e-15);
+  // A base that stood still over the step: the change (a relaxation) is not the motion's.
+  w.afterStep(x4, force(x4) + jump + Vec3(1e-3, 0, 0), moment(x4), 5);
+  EXPECT_FALSE(w.extrapolates());
+  w.at(x4 + h * dir, f, m);
+  EXPECT_EQ(f, force(x4) + jump + Vec3(1e-3, 0, 0));
 }

@@ -9,7 +9,9 @@
 //                       statistics, the final needles, probes and targets
 // The CSV is written to timeseries.partial.csv while running and renamed only on success;
 // With --centerline, DIR/centerline.csv holds every needle node per step (step, t, needle,
-// node, s = rest arc length from the base, x, y, z). A failed run leaves summary.json with "status": "numerical_failure" and the step, so
+// node, s = rest arc length from the base, x, y, z). With --wrench-rate, DIR/wrench.csv holds
+// each needle's force and moment on its holder at that rate, between the steps extrapolated
+// from the commanded base motion (needle/holder_wrench.hpp). A failed run leaves summary.json with "status": "numerical_failure" and the step, so
 // nothing half-done looks like a result.
 #include <fstream>
 #include <map>
@@ -21,6 +23,7 @@
 #include <functional>
 
 #include "needle_sim/adapt/spr_estimator.hpp"
+#include "needle_sim/needle/holder_wrench.hpp"
 #include "needle_sim/core/run_statistics.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
@@ -36,6 +39,7 @@ struct RecorderOptions {
                                 // DIR/tissue.pvd, DIR/needles.pvd (and DIR/surface.pvd for an organ)
   bool target_error = false;    // goal-oriented estimate of each target's error: <name>_err_* columns
   int target_error_every = 1;   // ... every this many steps (the last pass's values in between)
+  double wrench_rate = 0;       // > 0 [Hz]: DIR/wrench.csv, the holder wrenches at this rate
 };
 
 class RunRecorder {
@@ -67,6 +71,7 @@ class RunRecorder {
   };
   void declareColumns();
   void writeSeriesStep();  // one step of the ParaView series
+  void writeWrenches();    // wrench.csv: this step's row and those until the next step
   void writeSeriesIndex() const;
   void writeSummary(const std::string& status, double wall_s, long fail_step, const std::string& message);
 
@@ -79,7 +84,9 @@ class RunRecorder {
   long refined_total_ = 0, coarsened_total_ = 0;
   RunStatistics adapt_ms_;
   std::string dir_;
-  std::ofstream csv_, centerline_;
+  std::ofstream csv_, centerline_, wrench_;
+  std::vector<HolderWrenchExtrapolation> wrench_models_;  // per needle (--wrench-rate)
+  long wrench_rows_ = 0;
   std::vector<Column> columns_;
   std::vector<std::pair<double, std::string>> series_tissue_, series_needles_, series_surface_;
   Observables obs_;

@@ -15,6 +15,7 @@
 #include <ros/ros.h>
 
 #include <array>
+#include <chrono>
 #include <atomic>
 #include <functional>
 #include <condition_variable>
@@ -38,6 +39,7 @@
 #include <trajectory_msgs/MultiDOFJointTrajectory.h>
 
 #include "needle_sim/command/command_guard.hpp"
+#include "needle_sim/needle/holder_wrench.hpp"
 #include "needle_sim/sim/command_pipeline.hpp"
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/observables.hpp"
@@ -87,6 +89,30 @@ class SimulatorRos {
   void applyCommands();         // at a step boundary, sim_mutex_ held
   void stepOnce();              // sim_mutex_ held
   void publishStep(double ms);  // sim_mutex_ held
+  // ~<needle>/wrench between the steps of a scene slower than ~wrench_rate (the wall-clock
+  // pace): after each step the stepping thread tabulates each needle's wrench, the step's and
+  // every 1/~wrench_rate over the next two steps (the step's model, needle/holder_wrench.hpp,
+  // with the base where its commanded motion has it then); wrenchLoop, the topic's one sender
+  // then, sends the step's row when it comes (stamped as its status) and, every
+  // 1/~wrench_rate of wall time, the row of the time elapsed since (also while the next step
+  // is computed, or late), stamped at that row's time after the step.
+  void tabulateWrenches(const ros::Time& stamp);  // sim_mutex_ held, after a step (its status's stamp)
+  void wrenchLoop();
+  struct WrenchTable {
+    long seq = 0;  // the tabulating step's count
+    std::chrono::steady_clock::time_point made;
+    ros::Time stamp;  // the step's, as its status: row j is stamped j periods later
+    std::vector<std::string> frames;
+    std::vector<std::pair<Vec3, Vec3>> step;  // [needle]: the step's own force and moment
+    std::vector<std::vector<std::pair<Vec3, Vec3>>> ticks;  // [j - 1][needle]: force, moment at t0 + j period
+  };
+  std::vector<HolderWrenchExtrapolation> wrench_models_;  // per needle (sim_mutex_); cleared by load()
+  double wrench_period_ = 0;                              // 0: none between steps; set before threads start
+  std::mutex wrench_mutex_;                               // wrench_table_, wrench_stop_
+  std::condition_variable wrench_cv_;
+  WrenchTable wrench_table_;
+  bool wrench_stop_ = false;
+  std::thread wrench_thread_;
   void diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat);
   // Goal-oriented error bounds of the targets, off the stepping thread: every
   // ~target_error_period the worker copies the simulation (sim_mutex_ held) and this thread

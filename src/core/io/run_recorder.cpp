@@ -26,12 +26,22 @@ RunRecorder::RunRecorder(const Simulation& sim, const std::string& dir, const Op
   fs::create_directories(dir_, ec);
   if (ec) throw std::runtime_error("cannot create output directory '" + dir_ + "': " + ec.message());
   for (const char* f : {"summary.json", "timeseries.csv", "timeseries.partial.csv", "centerline.csv",
-                        "centerline.partial.csv", "tissue.vtu", "surface.vtp", "tissue.pvd", "needles.pvd",
+                        "centerline.partial.csv", "wrench.csv", "wrench.partial.csv", "tissue.vtu", "surface.vtp", "tissue.pvd", "needles.pvd",
                         "surface.pvd"})
     fs::remove(fs::path(dir_) / f, ec);
   if (options.centerline && sim.numNeedles() > 0) {
     centerline_.open(fs::path(dir_) / "centerline.partial.csv");
     centerline_ << "step,t,needle,node,s,x,y,z\n" << std::setprecision(10);
+  }
+  if (!(options.wrench_rate >= 0) || !std::isfinite(options.wrench_rate))
+    throw std::runtime_error("the wrench rate must be a finite number >= 0 [Hz]");
+  if (options.wrench_rate > 0 && sim.numNeedles() > 0) {
+    wrench_.open(fs::path(dir_) / "wrench.partial.csv");
+    wrench_ << "t,between";
+    for (int i = 0; i < sim.numNeedles(); ++i)
+      for (const char* c : {"fx", "fy", "fz", "mx", "my", "mz"}) wrench_ << ',' << sim.needle(i).name() << '_' << c;
+    wrench_ << '\n' << std::setprecision(10);
+    wrench_models_.resize(sim.numNeedles());
   }
   if (options.vtu_every > 0) {
     fs::remove_all(fs::path(dir_) / "vtu", ec);
@@ -163,6 +173,7 @@ void RunRecorder::recordStep(const StepStats& s, double ms) {
   newton_iterations_ += s.newton_iterations;
   max_linear_iterations_ = std::max(max_linear_iterations_, s.linear_iterations);
   max_linear_residual_ = std::max(max_linear_residual_, s.linear_residual);
+  if (wrench_.is_open()) writeWrenches();
   for (int i = 0; i < sim_.numNeedles(); ++i) {
     if (!centerline_.is_open()) break;
     const auto& nd = sim_.needle(i);
@@ -448,6 +459,30 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
   fs::rename(tmp, fs::path(dir_) / "summary.json");
 }
 
+void RunRecorder::writeWrenches() {
+  // The step's wrenches (between = 0), then each 1/rate until the next step's time (between =
+  // 1): the step's model with the base where its commanded motion has it then.
+  const int n = sim_.numNeedles();
+  auto row = [&](double t, bool between) {
+    wrench_ << t << ',' << (between ? 1 : 0);
+    for (int i = 0; i < n; ++i) {
+      Vec3 f = obs_.needles[i].holder_force, m = obs_.needles[i].holder_moment;
+      if (between) wrench_models_[i].at(sim_.needle(i).trajectory().pose(t).position, f, m);
+      wrench_ << ',' << f[0] << ',' << f[1] << ',' << f[2] << ',' << m[0] << ',' << m[1] << ',' << m[2];
+    }
+    wrench_ << '\n';
+    ++wrench_rows_;
+  };
+  for (int i = 0; i < n; ++i) {
+    const NeedleObservation& nd = obs_.needles[i];
+    wrench_models_[i].afterStep(sim_.needle(i).trajectory().pose(obs_.time).position, nd.holder_force,
+                                nd.holder_moment, nd.constraints);
+  }
+  row(obs_.time, false);
+  const double period = 1 / options_.wrench_rate, next = obs_.time + sim_.dt();
+  for (int j = 1; obs_.time + j * period < next - 1e-9 * sim_.dt(); ++j) row(obs_.time + j * period, true);
+}
+
 void RunRecorder::finish(double wall_s) {
   csv_.close();
   if (options_.vtu && sim_.hasTissue()) {
@@ -469,12 +504,17 @@ void RunRecorder::finish(double wall_s) {
     centerline_.close();
     fs::rename(fs::path(dir_) / "centerline.partial.csv", fs::path(dir_) / "centerline.csv");
   }
+  if (wrench_.is_open()) {
+    wrench_.close();
+    fs::rename(fs::path(dir_) / "wrench.partial.csv", fs::path(dir_) / "wrench.csv");
+  }
   writeSummary("ok", wall_s, -1, "");
 }
 
 void RunRecorder::fail(double wall_s, long step, const std::string& message) {
   csv_.close();
   centerline_.close();
+  wrench_.close();
   writeSummary("numerical_failure", wall_s, step, message);
 }
 

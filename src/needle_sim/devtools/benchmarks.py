@@ -14,6 +14,7 @@ good as the machine's quiet. The `node_overhead` benchmark launches the ROS node
 (`roslaunch needle_sim sim.launch`): source devel/setup.bash first.
 """
 import argparse
+import csv
 import json
 import math
 import os
@@ -210,6 +211,64 @@ def prediction():
                                    c.get("force_n", float("nan"))))
     return table, [placeholder(cmd, "--json", "FILE")]
 
+
+def holder_wrench():
+    """dbs_coarse's holder force between its 10 ms steps (run --wrench-rate 1000) against a 1 ms run."""
+    runs, cmds = {}, []
+    for dt in ("0.01", "0.001"):
+        out = tempfile.mkdtemp(prefix="bench_wrench_")
+        cmd = ["T", "run", "config/scenes/dbs_coarse.yaml", "--out", out, "--quiet", "--set", "time.duration=9",
+               "--set", "time.dt=" + dt] + (["--wrench-rate", "1000"] if dt == "0.01" else [])
+        run(cmd)
+        rows = rows_of(out)
+        runs[dt] = {"t": [float(r["t"]) for r in rows], "state": [r["cannula_state"] for r in rows],
+                    "axial": [float(r["cannula_axial_force"]) for r in rows],
+                    "f": [tuple(float(r["cannula_holder_f" + c]) for c in "xyz") for r in rows]}
+        if dt == "0.01":
+            with open(os.path.join(out, "wrench.csv")) as f:
+                runs[dt]["wrench"] = [(float(r["t"]), r["between"] == "1",
+                                       tuple(float(r["cannula_f" + c]) for c in "xyz")) for r in csv.DictReader(f)]
+        cmds.append(placeholder(cmd, "--out", "DIR"))
+    fine = runs["0.001"]
+    at_ms = {round(t * 1e3): f for t, f in zip(fine["t"], fine["f"])}  # the 1 ms run's force by millisecond
+    # Per window of time, each millisecond between the 10 ms steps: the wrench.csv row (the
+    # step's model: extrapolated from the base's motion) and the last step's force held,
+    # against the 1 ms run; and the 10 ms steps themselves.
+    windows = [(1.5, 3.0), (3.0, 4.5), (4.5, 6.0), (6.0, 7.3), (7.3, 8.0), (8.0, 8.5), (8.5, 9.0)]
+    held, extrapolated, at_steps = ({w: [] for w in windows} for _ in range(3))
+    last = None
+    for t, between, f in runs["0.01"]["wrench"]:
+        if not between:
+            last = f
+        w = next((w for w in windows if w[0] < t <= w[1] + 1e-9), None)
+        ref = at_ms.get(round(t * 1e3))
+        if w is None or ref is None:
+            continue
+        if between:
+            held[w].append(math.dist(ref, last))
+            extrapolated[w].append(math.dist(ref, f))
+        else:
+            at_steps[w].append(math.dist(ref, f))
+
+    def first(run, what):
+        return next((t for t, s in zip(run["t"], run["state"]) if s == what), float("nan"))
+
+    def rms(v):
+        return math.sqrt(sum(x * x for x in v) / len(v))
+
+    def axial_range(w):  # the 1 ms run's axial force on the holder at the window's ends
+        return "%.0f to %.0f" % tuple(1e3 * next(a for t, a in zip(fine["t"], fine["axial"]) if t >= x - 1e-9)
+                                      for x in w)
+
+    table = ("Punctured at %.3f s (10 ms) and %.3f s (1 ms).\n\n"
+             "| t [s] | axial force, 1 ms run [mN] | 10 ms run at its steps: RMS / max [mN] "
+             "| held between steps: RMS / max [mN] | wrench.csv between steps: RMS / max [mN] |\n"
+             "|---|---|---|---|---|\n") % (first(runs["0.01"], "punctured"), first(fine, "punctured"))
+    for w in windows:
+        table += "| %.1f-%.1f | %s | %.1f / %.1f | %.1f / %.1f | %.1f / %.1f |\n" % (
+            w[0], w[1], axial_range(w), 1e3 * rms(at_steps[w]), 1e3 * max(at_steps[w]),
+            1e3 * rms(held[w]), 1e3 * max(held[w]), 1e3 * rms(extrapolated[w]), 1e3 * max(extrapolated[w]))
+    return table, cmds
 
 def gel_demo():
     """The gel steering demo (bevel tip, adaptive, 5 ms steps), three runs."""
@@ -510,6 +569,8 @@ BENCHMARKS = [
     ("target_error", "the adaptive phantom with a target's goal-oriented error bound every 20 steps",
      1, False, target_error),
     ("prediction", "a 10 s plan predicted on a copy of the adaptive phantom", 1, False, prediction),
+    ("holder_wrench", "dbs_coarse's holder force at its 10 ms step against a 1 ms run, to 9 s", 2, False,
+     holder_wrench),
     ("gel_demo", "the bevel-tip gel demo, three runs", 1, False, gel_demo),
     ("gel_mesh", "the gel demo's cut path on four uniform grids and its adaptive mesh", 8, False, gel_mesh),
     ("steer", "a bevel needle's roll-flip plan and its live run", 1, False, steer),
