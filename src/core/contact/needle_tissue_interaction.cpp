@@ -388,27 +388,21 @@ InteractionStats NeedleTissueInteraction::solve(double h) {
     if (constraints_.size() > before) updateGeometry();
   }
   // The touch's impact, armed while a puncture point carries no force (afterCommit): the
-  // impulse m v that brings the surface point to the tip's approach speed, m the point's share
-  // of the tissue's lumped mass (a force at the point accelerates it by sum_a w_a^2 / m_a per
-  // newton).
-  {
-    const HexMesh& mesh = tissue_->mesh();
-    const VecX& mass = tissue_->lumpedMass();
-    for (auto& c : constraints_) {
-      if (c->kind() != ConstraintKind::Puncture) continue;
-      auto& pc = static_cast<PunctureConstraint&>(*c);
-      if (pc.wasLoaded()) continue;
-      const NeedleBody& nd = *needles_[c->needle];
-      const Vec3 v_tip = nd.velocities().segment<3>(6 * (nd.beam().numNodes() - 1));
-      const Vec3 v_surface = c->tissue.interpolate(mesh, tissue_->velocities());
-      const double approach = std::max(0.0, -c->frame.col(0).dot(v_tip - v_surface));
-      double inv_mass = 0;
-      for (int a = 0; a < 8; ++a) {
-        const double m = mass[3 * mesh.element(c->tissue.element)[a]], w = c->tissue.weights[a];
-        inv_mass += w == 0 ? 0.0 : m > 0 ? w * w / m : std::numeric_limits<double>::infinity();
-      }
-      pc.armImpact(inv_mass > 0 && std::isfinite(inv_mass) ? approach / inv_mass : 0.0);
+  // impulse m v that brings the surface point to the tip's approach speed, 1/m = sum_a w_a^2/m_a
+  // (the point's share of the tissue's lumped mass).
+  for (auto& c : constraints_) {
+    auto* pc = c->kind() == ConstraintKind::Puncture ? static_cast<PunctureConstraint*>(c.get()) : nullptr;
+    if (!pc || pc->wasLoaded()) continue;
+    const NeedleBody& nd = *needles_[c->needle];
+    const Vec3 v_tip = nd.velocities().segment<3>(6 * (nd.beam().numNodes() - 1));
+    const Vec3 v_surface = c->tissue.interpolate(tissue_->mesh(), tissue_->velocities());
+    double inv_mass = 0;
+    for (int a = 0; a < 8; ++a) {
+      const double m = tissue_->lumpedMass()[3 * tissue_->mesh().element(c->tissue.element)[a]], w = c->tissue.weights[a];
+      inv_mass += w == 0 ? 0.0 : m > 0 ? w * w / m : std::numeric_limits<double>::infinity();
     }
+    const double approach = std::max(0.0, -c->frame.col(0).dot(v_tip - v_surface));
+    pc->armImpact(inv_mass > 0 && std::isfinite(inv_mass) ? approach / inv_mass : 0.0);
   }
   st.points = static_cast<int>(constraints_.size());
   if (constraints_.empty()) {
