@@ -188,16 +188,4 @@ geometry_msgs::WrenchStamped wrenchMessage(const StepFrame& f, int i, bool in_ba
   return w;
 }
 
-geometry_msgs::WrenchStamped wrenchMessage(const ros::Time& stamp, const std::string& needle, const Vec3& force,
-                                           const Vec3& moment, const Eigen::Quaterniond& base_frame, bool in_base,
-                                           const std::string& tissue_frame) {
-  geometry_msgs::WrenchStamped w;
-  w.header.stamp = stamp;
-  w.header.frame_id = in_base ? needle + "_base" : tissue_frame;
-  const Eigen::Quaterniond to_base = base_frame.conjugate();  // as observables.cpp
-  w.wrench.force = toVector(in_base ? Vec3(to_base * force) : force);
-  w.wrench.torque = toVector(in_base ? Vec3(to_base * moment) : moment);
-  return w;
-}
-
 }  // namespace needle_sim

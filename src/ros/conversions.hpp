@@ -55,9 +55,5 @@ std::vector<needle_sim::TargetState> targetStates(const StepFrame& f, const std:
 // Needle i's wrench on its holder, stamped in <needle>_base (in_base: force.x is the axial
 // force, negative when the tissue resists the insertion, observables.hpp) or the tissue frame.
 geometry_msgs::WrenchStamped wrenchMessage(const StepFrame& f, int i, bool in_base, const std::string& tissue_frame);
-// The same from a wrench in the tissue frame and the base's frame (a wrench between steps).
-geometry_msgs::WrenchStamped wrenchMessage(const ros::Time& stamp, const std::string& needle, const Vec3& force,
-                                           const Vec3& moment, const Eigen::Quaterniond& base_frame, bool in_base,
-                                           const std::string& tissue_frame);
 
 }  // namespace needle_sim

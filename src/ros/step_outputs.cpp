@@ -91,7 +91,7 @@ void SimulatorRos::tabulateWrenches(const ros::Time& stamp) {
   table.stamp = stamp;
   if (heard && wrench_pubs_.size() == obs_.needles.size()) {
     const bool in_base = params_->wrench_frame == "base";
-    auto frame = [&](size_t i, const Vec3& f, const Vec3& m) {  // as wrenchMessage
+    auto frame = [&](size_t i, const Vec3& f, const Vec3& m) {  // as wrenchMessage: the base frame of observables.cpp
       const Eigen::Quaterniond to_base = obs_.needles[i].base_frame.conjugate();
       return std::make_pair(in_base ? Vec3(to_base * f) : f, in_base ? Vec3(to_base * m) : m);
     };

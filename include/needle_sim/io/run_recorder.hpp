@@ -86,7 +86,6 @@ class RunRecorder {
   std::string dir_;
   std::ofstream csv_, centerline_, wrench_;
   std::vector<HolderWrenchExtrapolation> wrench_models_;  // per needle (--wrench-rate)
-  long wrench_rows_ = 0;
   std::vector<Column> columns_;
   std::vector<std::pair<double, std::string>> series_tissue_, series_needles_, series_surface_;
   Observables obs_;

@@ -471,7 +471,6 @@ void RunRecorder::writeWrenches() {
       wrench_ << ',' << f[0] << ',' << f[1] << ',' << f[2] << ',' << m[0] << ',' << m[1] << ',' << m[2];
     }
     wrench_ << '\n';
-    ++wrench_rows_;
   };
   for (int i = 0; i < n; ++i) {
     const NeedleObservation& nd = obs_.needles[i];
