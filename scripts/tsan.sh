@@ -32,7 +32,7 @@ if [ ! -f "$DEVEL/include/needle_sim/SimStatus.h" ] || [ ! -f "$DEVEL/include/ne
   build_generated
 fi
 TSAN_ROS="${TSAN_BUILD}_ros"
-CC=clang CXX=clang++ cmake -S "$ROOT/test/tsan_ros" -B "$TSAN_ROS" -DNEEDLE_SIM_CORE_BUILD="$TSAN_BUILD" \
+CC=clang CXX=clang++ cmake -S "$ROOT/test/tsan_ros" -B "$TSAN_ROS" "${UNITY[@]}" -DNEEDLE_SIM_CORE_BUILD="$TSAN_BUILD" \
   -DNEEDLE_SIM_GENERATED="$DEVEL/include" -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 >&2
 cmake --build "$TSAN_ROS" -j"$(getconf _NPROCESSORS_ONLN)" >&2
 # ROS's libraries are not instrumented: their own accesses are not checked

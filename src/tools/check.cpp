@@ -18,13 +18,13 @@
 #include "needle_sim/scene/scene_overrides.hpp"
 #include "needle_sim/sim/preflight.hpp"
 #include "needle_sim/sim/simulation.hpp"
+#include "exit_codes.hpp"
 
 using namespace needle_sim;
+using needle_sim_tool::kExitInput;
 using Json = nlohmann::ordered_json;  // the scene's keys in the file's order
 
 namespace {
-
-constexpr int kExitInput = 2;
 
 // The scene's YAML tree as the loader builds from it (scene_loader.cpp): the file, its
 // `extends` chain resolved, then the overrides in order. Called after loadScene accepted the

@@ -49,15 +49,16 @@
 #include "check.hpp"
 #include "predict.hpp"
 #include "steer.hpp"
+#include "exit_codes.hpp"
 #include "share_dir.hpp"
 #include "soak.hpp"
 
 using namespace needle_sim;
+using needle_sim_tool::kExitInput;
+using needle_sim_tool::kExitNumerical;
 
 namespace {
 
-constexpr int kExitInput = 2;
-constexpr int kExitNumerical = 3;
 
 // A recorded session driving the run (run --bag).
 struct BagRun {

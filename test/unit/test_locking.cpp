@@ -11,12 +11,11 @@
 
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/simulation.hpp"
+#include "fixtures.hpp"
 
 using namespace needle_sim;
 
 namespace {
-
-std::string scenePath(const std::string& name) { return std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/" + name; }
 
 const YAML::Node& reference() {
   static const YAML::Node r = YAML::LoadFile(std::string(NEEDLE_SIM_SOURCE_DIR) + "/test/data/locking_reference.json");
@@ -38,7 +37,7 @@ double referenceValue(const std::string& benchmark, double nu, const std::string
 // One static step of a shipped scene; a probe's displacement component.
 double staticProbe(const std::string& scene, const std::string& element, double nu, const std::string& cells, int probe,
                    int component) {
-  Simulation sim(loadScene(scenePath(scene), {"tissue.element=" + element, "tissue.material.poisson=" + std::to_string(nu),
+  Simulation sim(loadScene(needle_sim_test::sceneFile(scene), {"tissue.element=" + element, "tissue.material.poisson=" + std::to_string(nu),
                                               "tissue.grid.cells=" + cells}));
   sim.step();
   return sim.probeDisplacement(probe)[component];

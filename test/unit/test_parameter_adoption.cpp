@@ -18,7 +18,7 @@
 using namespace needle_sim;
 
 namespace {
-const std::string kPhantom = std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/phantom_insertion_8x4x4.yaml";
+const std::string kAdoptionScene = std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/phantom_insertion_8x4x4.yaml";
 constexpr double kDt = 0.002;
 
 // The holder's axial force and the displacement of probe p1 (on the axis, 2.5 mm into the
@@ -30,7 +30,7 @@ AdoptionRun run(const std::vector<std::string>& extra, double at, const std::vec
         const std::vector<double>& values, double ramp) {
   std::vector<std::string> sets = {"time.dt=0.002", "time.duration=2.3"};
   sets.insert(sets.end(), extra.begin(), extra.end());
-  Simulation sim(loadScene(kPhantom, sets));
+  Simulation sim(loadScene(kAdoptionScene, sets));
   ParameterAdoption adoption(keys, ramp);
   Observables o;
   AdoptionRun r;
@@ -151,7 +151,7 @@ TEST(ParameterAdoption, OnlyTheRunsValuesAndInRange) {
   EXPECT_TRUE(Simulation::adoptable("tissue.material.young"));
   EXPECT_FALSE(Simulation::adoptable("tissue.material.poisson"));
   EXPECT_FALSE(Simulation::adoptable("interaction.shaft_spacing"));
-  Simulation sim(loadScene(kPhantom, {"time.dt=0.002", "time.duration=0.01"}));
+  Simulation sim(loadScene(kAdoptionScene, {"time.dt=0.002", "time.duration=0.01"}));
   EXPECT_THROW(sim.adopt("tissue.material.poisson", 0.3), InputError);
   EXPECT_THROW(sim.adopt("tissue.material.young", 0), InputError);
   EXPECT_THROW(sim.adopt("tissue.material.young", NAN), InputError);

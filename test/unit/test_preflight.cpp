@@ -10,11 +10,11 @@
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/sim/preflight.hpp"
 #include "needle_sim/sim/simulation.hpp"
+#include "fixtures.hpp"
 
 using namespace needle_sim;
 
 namespace {
-const std::string kScenes = std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/";
 
 double wallSeconds(const std::chrono::steady_clock::time_point& t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -24,7 +24,7 @@ double wallSeconds(const std::chrono::steady_clock::time_point& t0) {
 // 32x16x16 takes tens of milliseconds a step against dt = 1 ms: it will not keep real time,
 // and the budget bounds the wall time spent saying so.
 TEST(Preflight, AReferenceMeshWillNotKeepRealTimeAndTheBudgetBoundsItsCost) {
-  const Scene scene = loadScene(kScenes + "phantom_insertion_32x16x16.yaml");
+  const Scene scene = loadScene(needle_sim_test::sceneFile("phantom_insertion_32x16x16.yaml"));
   Simulation sim(scene);
   const auto t0 = std::chrono::steady_clock::now();
   const PreflightResult r = preflight(sim, scene, {0.5});
@@ -42,7 +42,7 @@ TEST(Preflight, AReferenceMeshWillNotKeepRealTimeAndTheBudgetBoundsItsCost) {
 // The 8x4x4 phantom at dt = 50 ms: a step is a fraction of a millisecond. Paced, the budget of
 // 1 s covers 1 s of simulated time (back to back it would have run the whole scene).
 TEST(Preflight, AFastSceneKeepsRealTimeAndIsPacedAtItsTimeStep) {
-  const Scene scene = loadScene(kScenes + "phantom_insertion_8x4x4.yaml", {"time.dt=0.05"});
+  const Scene scene = loadScene(needle_sim_test::sceneFile("phantom_insertion_8x4x4.yaml"), {"time.dt=0.05"});
   Simulation sim(scene);
   const PreflightResult r = preflight(sim, scene, {1.0});
   EXPECT_TRUE(r.keepsRealTime()) << r.summary();
@@ -62,7 +62,7 @@ TEST(Preflight, AFastSceneKeepsRealTimeAndIsPacedAtItsTimeStep) {
 // times the scene's insertion (the adaptive phantom refines at the puncture, 0.3 s in), not
 // a needle held outside the tissue.
 TEST(Preflight, TimesTheScenesOwnMotionWhenTheLiveNeedleHasNone) {
-  const Scene own = loadScene(kScenes + "phantom_insertion_adaptive.yaml", {"time.dt=0.005"});
+  const Scene own = loadScene(needle_sim_test::sceneFile("phantom_insertion_adaptive.yaml"), {"time.dt=0.005"});
   Scene commanded = own;
   for (auto& n : commanded.needles) n.motion.clear();
   Simulation live(commanded);
