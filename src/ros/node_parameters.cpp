@@ -155,6 +155,9 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   pnh.param("target_error_period", p.target_error_period, p.target_error_period);
   if (!(p.target_error_period >= 0) || !std::isfinite(p.target_error_period))
     throw InputError("", "~target_error_period", "must be >= 0 (0: no error bound)");
+  pnh.param("target_error_duty", p.target_error_duty, p.target_error_duty);
+  if (!(p.target_error_duty > 0 && p.target_error_duty <= 1))
+    throw InputError("", "~target_error_duty", "must be in (0, 1] (the share of the wall time the estimates may take)");
   pnh.param("deadline_warn_fraction", p.deadline_warn_fraction, p.deadline_warn_fraction);
   if (!(p.deadline_warn_fraction >= 0) || !(p.deadline_warn_fraction <= 1))
     throw InputError("", "~deadline_warn_fraction", "must be in [0, 1]");

@@ -67,6 +67,7 @@ struct NodeParameters {
   double preflight_wall = 2.0;
   double insert_speed = 0.005;          // [m/s] default speed of ~insert goals
   double target_error_period = 0.2;     // [s] goal-oriented error bound of the targets this often (0: off)
+  double target_error_duty = 0.25;      // at most this share of the wall time spent estimating (1: back to back)
   double deadline_warn_fraction = 0.05;  // diagnostics WARN above this share of late steps / skipped ticks
   AssimilationParameters assimilation;   // ~assimilation/*: measurements in, online estimates out
 };

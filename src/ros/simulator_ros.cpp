@@ -374,6 +374,10 @@ void SimulatorRos::applyCommands() {
 void SimulatorRos::errorLoop() {
   nameThisThread("ns_target_err");
   flushDenormalsToZero();
+  // Nothing waits for an estimate (the outputs carry the latest finished one): below every
+  // other thread, so that on two cores it takes neither the stepping thread's core nor the
+  // background factor refreshes' (a stale factor costs the step CG iterations).
+  idleThisThread();
   for (;;) {
     std::unique_ptr<Simulation> job;
     {
@@ -383,13 +387,25 @@ void SimulatorRos::errorLoop() {
       job = std::move(error_job_);
     }
     std::vector<TargetError> errs;
+    const auto t0 = std::chrono::steady_clock::now();
     try {
       errs = job->targetErrors();
     } catch (const std::exception& e) {
       ROS_WARN_THROTTLE(10.0, "needle_sim: target error estimate failed: %s", e.what());
     }
     for (auto& e : errs) e.indicator.clear();  // (not needed here)
+    // An estimate that took w of wall time is followed by w (1 / duty - 1) without one: on
+    // two cores an estimate running back to back (the DBS scenes' take longer than their
+    // period) slows the stepping thread beside it through the shared caches and memory.
+    const auto t1 = std::chrono::steady_clock::now();
+    const auto rest = std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+        (t1 - t0) * (1.0 / params_->target_error_duty - 1.0));
     std::lock_guard<std::mutex> lk(error_mutex_);
+    next_error_wall_ = t1 + rest;
+    const double w = std::chrono::duration<double>(t1 - t0).count();
+    ++error_estimates_;
+    error_wall_s_total_ += w;
+    error_wall_s_max_ = std::max(error_wall_s_max_, w);
     if (!errs.empty()) {
       errors_latest_ = std::move(errs);
       errors_step_ = job->stepIndex();
@@ -404,7 +420,8 @@ void SimulatorRos::updateTargetErrors() {
   if (sim_->adaptation() && sim_->adaptation()->settings().estimator == AdaptivitySettings::Estimator::Goal) return;
   {
     std::lock_guard<std::mutex> lk(error_mutex_);
-    if (!error_busy_ && sim_->time() - last_error_time_ >= params_->target_error_period - 1e-12) {
+    if (!error_busy_ && sim_->time() - last_error_time_ >= params_->target_error_period - 1e-12 &&
+        std::chrono::steady_clock::now() >= next_error_wall_) {
       last_error_time_ = sim_->time();
       error_busy_ = true;
       error_job_ = std::make_unique<Simulation>(*sim_);

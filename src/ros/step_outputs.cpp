@@ -275,6 +275,14 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   stat.add("prediction_wall_s_last", c.last_s);
   stat.add("prediction_wall_s_max", c.max_s);
   stat.add("prediction_wall_s_total", c.total_s);
+  // The targets' live error estimates (~target_error_period, ~target_error_duty): how many,
+  // their wall time.
+  {
+    std::lock_guard<std::mutex> ek(error_mutex_);
+    stat.add("target_error_estimates", error_estimates_);
+    stat.add("target_error_wall_s_total", error_wall_s_total_);
+    stat.add("target_error_wall_s_max", error_wall_s_max_);
+  }
   // The pre-flight at start (~preflight_wall): its verdict and figures.
   if (preflight_run_) {
     const PreflightResult& f = preflight_;

@@ -17,6 +17,7 @@
 // either sanitizer fails the run; the test itself checks that every thread did its work.
 #include <gtest/gtest.h>
 #include <dynamic_reconfigure/Reconfigure.h>
+#include <diagnostic_msgs/DiagnosticArray.h>
 #include <geometry_msgs/WrenchStamped.h>
 #include <nav_msgs/Path.h>
 #include <needle_sim/PredictInsertion.h>
@@ -31,6 +32,7 @@
 
 #include <atomic>
 #include <cmath>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -223,6 +225,53 @@ TEST(NodeThreads, EveryThreadAtOnceThenTheNodeDestroyedWhileCommandsArrive) {
   spinner.stop();
   std::cout << sent.load() << " poses sent, " << rx.size() << " steps, " << rx.cloud.load() << " clouds, "
             << rx.target_bounds.load() << " target states with a bound\n";
+}
+
+// ~target_error_duty: estimates asked for at every step (a period of one step) would run back
+// to back; at a duty of a quarter their wall time stays within a quarter of the time that
+// passed (plus the one under way). Read from the node's diagnostics. Ignoring the duty, the
+// share is about one.
+TEST(NodeThreads, TheTargetErrorEstimatesKeepToTheirDuty) {
+  const std::string ns = "/duty_sim";
+  ros::NodeHandle nh, pnh(ns);
+  pnh.setParam("scene", std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/phantom_insertion_8x4x4.yaml");
+  pnh.setParam("target_error_period", 0.001);
+  pnh.setParam("target_error_duty", 0.25);
+  pnh.setParam("preflight_wall", 0.0);
+  std::mutex m;
+  std::map<std::string, std::string> diag;
+  ros::Subscriber ds = nh.subscribe<diagnostic_msgs::DiagnosticArray>(
+      "/diagnostics", 100, [&](const diagnostic_msgs::DiagnosticArray::ConstPtr& a) {
+        for (const auto& st : a->status)
+          if (st.name.find("simulation") != std::string::npos) {
+            std::lock_guard<std::mutex> lk(m);
+            for (const auto& kv : st.values) diag[kv.key] = kv.value;
+          }
+      });
+  auto sim = std::make_unique<needle_sim::SimulatorRos>(nh, pnh);
+  ros::AsyncSpinner spinner(2);
+  spinner.start();
+  ASSERT_TRUE(ros::service::waitForService(ns + "/set_target", 10000));
+  const double t0 = ros::WallTime::now().toSec();
+  needle_sim::SetTarget st;
+  st.request.name = "inside";
+  st.request.point.x = 0.01, st.request.point.y = kY, st.request.point.z = kZ;
+  ASSERT_TRUE(ros::service::call(ns + "/set_target", st));
+  ASSERT_TRUE(st.response.success) << st.response.message;
+  ros::WallDuration(6.0).sleep();
+  auto value = [&](const std::string& k) {
+    std::lock_guard<std::mutex> lk(m);
+    auto it = diag.find(k);
+    return it == diag.end() ? std::nan("") : std::stod(it->second);
+  };
+  ASSERT_TRUE(waitFor([&] { return value("target_error_estimates") >= 5; }, 10.0)) << "too few estimates";
+  const double elapsed = ros::WallTime::now().toSec() - t0;
+  const double total = value("target_error_wall_s_total"), longest = value("target_error_wall_s_max");
+  std::cout << value("target_error_estimates") << " estimates, " << total << " s of " << elapsed
+            << " s of wall time, the longest " << longest << " s\n";
+  EXPECT_LE(total, 0.25 * elapsed + longest);
+  spinner.stop();
+  sim.reset();
 }
 
 int main(int argc, char** argv) {

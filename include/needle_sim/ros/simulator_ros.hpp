@@ -246,6 +246,10 @@ class SimulatorRos {
   long errors_step_ = -1;
   bool error_busy_ = false, error_stop_ = false;
   double last_error_time_ = -1e300;  // simulation time of the last copy taken (sim_mutex_)
+  // No copy before this (the estimates' duty cycle, ~target_error_duty; error_mutex_).
+  std::chrono::steady_clock::time_point next_error_wall_{};
+  long error_estimates_ = 0;          // estimates finished (error_mutex_; diagnostics)
+  double error_wall_s_total_ = 0, error_wall_s_max_ = 0;  // their wall time [s]
   std::thread error_thread_;
 };
 

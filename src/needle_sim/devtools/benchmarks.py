@@ -459,6 +459,35 @@ def _deadlines_beside_launch(launch_args, client_args, timeout=180):
     return text, m
 
 
+# The shipped scenes meant for a live loop (#40): the node's criteria are those of its pre-flight.
+LIVE_SCENES = ["phantom_insertion_adaptive", "dbs_coarse", "dbs_adaptive", "dbs_goal", "gel_bevel_steering"]
+
+
+def node_scenes():
+    """The node on each live scene by bare name, a 500 Hz client streaming every needle the
+    scene's own motion, every output subscribed: late steps, skipped ticks, step times."""
+    rows = []
+    for name in LIVE_SCENES:
+        dt = json.loads(run([paths.tool(), "check", name, "--json"]))["scene"]["time"]["dt"]
+        text, m = _deadlines_beside_launch(["scene:=" + name, "command_source:=topic"],
+                                           ["--subscribe-all", "--scene", name], timeout=300)
+        t = re.search(r"step times of (\d+) steps: median ([0-9.]+) ms, p99.9 ([0-9.]+) ms, max ([0-9.]+) ms", text)
+        if not t:
+            raise RuntimeError("node_deadlines.py printed no step times:\n" + text)
+        steps, late, skipped, p999 = int(m.group(1)), int(m.group(2)), int(m.group(4)), float(t.group(3))
+        keeps = late < 0.01 * steps and p999 < 1e3 * dt and skipped == 0
+        rows.append("| %s | %g | %d | %s (%s %%) | %s | %s | %s | %s | %s |" % (
+            name, 1e3 * dt, steps, m.group(2), m.group(3), m.group(4), t.group(2), t.group(3), t.group(4),
+            "yes" if keeps else "**no**"))
+    head = ("| scene | dt ms | steps | late steps | skipped ticks | step median ms | p99.9 ms | max ms "
+            "| real time (< 1 % late, p99.9 < dt, no skipped tick) |\n|---|---|---|---|---|---|---|---|---|\n")
+    return head + "\n".join(rows) + "\n", [
+        "for s in %s; do" % " ".join(LIVE_SCENES),
+        "  roslaunch needle_sim sim.launch scene:=$s command_source:=topic &",
+        "  scripts/node_deadlines.py --rate 500 --subscribe-all --scene $s   # 4 s later",
+        "  kill -INT %1; wait; done"]
+
+
 def node_prediction():
     """The node's live loop with and without a long ~predict beside it: the adaptive phantom,
     500 Hz poses, a 99,000-step prediction 0.2 s in (stopped by ~predict_max_wall, 5 s)."""
@@ -517,20 +546,29 @@ def stability_sweep():
     return table, [cmd]
 
 
+CI_LOG = {}  # --ci-log FILE --ci-rev REV: the phase times of a .ci/run already made
+
+
 def ci():
-    """.ci/run on a clean clone of the commit checked out (what CI runs): its phase times."""
-    work = tempfile.mkdtemp(prefix="bench_ci_")
-    clone = os.path.join(work, "needle_sim")
-    subprocess.run(["git", "clone", "-q", root(), clone], check=True)
-    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=clone, stdout=subprocess.PIPE,
-                         text=True).stdout.strip()
-    p = subprocess.run(["bash", ".ci/run"], cwd=clone, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                       timeout=3 * 3600)
-    tail = p.stderr.split("=== .ci/run phase times ===")[-1]
+    """.ci/run on a clean clone of the commit checked out (what CI runs): its phase times; or
+    those a clean clone's .ci/run printed to the log given (--ci-log, with its commit)."""
+    if CI_LOG:
+        rev, text, code, clone = CI_LOG["rev"], open(CI_LOG["log"]).read(), 0, CI_LOG["log"]
+    else:
+        work = tempfile.mkdtemp(prefix="bench_ci_")
+        clone = os.path.join(work, "needle_sim")
+        subprocess.run(["git", "clone", "-q", root(), clone], check=True)
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=clone, stdout=subprocess.PIPE,
+                             text=True).stdout.strip()
+        p = subprocess.run(["bash", ".ci/run"], cwd=clone, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                           text=True, timeout=3 * 3600)
+        text, code = p.stderr, p.returncode
+    tail = text.split("=== .ci/run phase times ===")[-1]
     rows = ["| %s | %s |" % (m.group(2), m.group(1)) for m in re.finditer(r"^\s*(\d+) s  (.+)$", tail, re.M)]
-    if p.returncode != 0 or not rows:
-        raise RuntimeError(".ci/run failed (exit %d) in %s:\n%s" % (p.returncode, clone, p.stderr[-3000:]))
-    shutil.rmtree(work, ignore_errors=True)
+    if code != 0 or not rows:
+        raise RuntimeError(".ci/run failed (exit %d) in %s:\n%s" % (code, clone, text[-3000:]))
+    if not CI_LOG:
+        shutil.rmtree(work, ignore_errors=True)
     table = "| phase (clean clone of %s) | seconds |\n|---|---|\n%s\n" % (rev, "\n".join(rows))
     return table, ["git clone -q . DIR && cd DIR && bash .ci/run"]
 
@@ -577,6 +615,8 @@ BENCHMARKS = [
     ("calibration", "calibrate recovering known cutting force and grip from a noisy synthetic record",
      1, False, calibration),
     ("node_overhead", "the ROS node's output cost against its step (launches the node)", 1, False, node_overhead),
+    ("node_scenes", "the node on every live scene, a 500 Hz client, every output subscribed (launches the node)", 3,
+     False, node_scenes),
     ("node_prediction", "the node's loop with a long ~predict beside it (launches the node)", 1, False,
      node_prediction),
     ("node_assimilation", "the node's loop with and without the online estimate beside it (launches the node)", 5,
@@ -646,7 +686,14 @@ def main():
     ap.add_argument("--full", action="store_true", help="also the studies that take hours")
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--check", action="store_true")
+    ap.add_argument("--ci-log", metavar="FILE", help="ci: the phase times from this .ci/run output (stderr) of a "
+                                                    "clean clone instead of a run of its own")
+    ap.add_argument("--ci-rev", metavar="REV", help="with --ci-log: the commit that run was of")
     a = ap.parse_args()
+    if a.ci_log:
+        if not a.ci_rev:
+            sys.exit("benchmarks.py: --ci-log needs --ci-rev (the commit its clone was of)")
+        CI_LOG.update(log=a.ci_log, rev=a.ci_rev)
     path = os.path.join(root(), "doc", DOC)
     known = [b[0] for b in BENCHMARKS]
     if a.list:
@@ -672,7 +719,10 @@ def main():
             continue  # a study: it wrote its own blocks
         md = "On %s:\n\n```bash\n%s\n```\n\n%s" % (where, "\n".join(shown(c) for c in cmds), table)
         # Written after each: a long run keeps what it measured.
-        write_doc_block(DOC, bid, md, "scripts/benchmarks.py --only %s" % bid, rev)
+        made_by = "scripts/benchmarks.py --only %s" % bid
+        if bid == "ci" and CI_LOG:  # the phase times of a clean clone's .ci/run made before
+            made_by += " --ci-log LOG --ci-rev %s" % CI_LOG["rev"]
+        write_doc_block(DOC, bid, md, made_by, rev)
     print("benchmarks.py: %s written (commit %s)" % (path, rev))
     return 0
 

@@ -15,6 +15,13 @@ With --subscribe-all, every topic of the node, /tf and /diagnostics are subscrib
 are. For another scene give its needle's rest pose and depth, e.g. the gel demo:
 --base -0.062 0.015 0.015 --depth 0.045.
 
+With --scene NAME (a scene the node runs, by name or path), every needle of the scene is
+streamed its own motion from the scene file (base, advance and roll keyframes, as
+`needle_sim check NAME --json` reads them) at --rate Hz, over the scene's duration: the load
+of the scene's insertion with the robot's stream in place of the scene's clock (the node
+started with `command_source:=topic`); --base, --depth and the other motion options are then
+not used.
+
 With --predict-steps N, a ~predict request of N steps at --predict-dt is sent 0.2 s into the
 insertion, from a thread of its own (as a planner beside the robot's loop would), and a second
 line reports it: its wall time, whether the node stopped it (~predict_max_wall), and the late
@@ -26,11 +33,14 @@ With --echo-wrench NOISE, the client also acts as a force sensor: every --echo-e
 line reports the last ~estimate: from its own force, the node must find the scene's values.
 
 Prints one line: steps, late steps and skipped ticks (counts and % of the steps), the
-largest step, the load average; exit status 0 (a measurement, not a test).
+largest step, the load average; and one of the step times (`~status`'s step_ms of every step
+over the insertion): median, p99.9, max; exit status 0 (a measurement, not a test).
 """
 import argparse
+import json
 import math
 import os
+import subprocess
 import threading
 
 import rospy
@@ -39,6 +49,59 @@ import random
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from needle_sim.msg import NeedleWaypoint, ParameterEstimate, SimStatus
 from needle_sim.srv import PredictInsertion, PredictInsertionRequest
+
+
+def quaternion_along(d, roll=0.0):
+    """(w, x, y, z): the smallest rotation carrying x onto the unit vector d (the pose
+    convention: x along the needle), after a roll by `roll` about x."""
+    w = 1.0 + d[0]
+    q = (w, 0.0, -d[2], d[1]) if w > 1e-9 else (0.0, 0.0, 1.0, 0.0)
+    n = math.sqrt(sum(c * c for c in q))
+    a = [c / n for c in q]
+    r = (math.cos(roll / 2), math.sin(roll / 2), 0.0, 0.0)
+    return (a[0] * r[0] - a[1] * r[1] - a[2] * r[2] - a[3] * r[3],
+            a[0] * r[1] + a[1] * r[0] + a[2] * r[3] - a[3] * r[2],
+            a[0] * r[2] - a[1] * r[3] + a[2] * r[0] + a[3] * r[1],
+            a[0] * r[3] + a[1] * r[2] - a[2] * r[1] + a[3] * r[0])
+
+
+def scene_motions(scene):
+    """[(needle, base, unit direction, keyframes [(t, advance, roll)])] and the scene's duration,
+    from `needle_sim check SCENE --json` (the loader's reading: extends resolved)."""
+    from needle_sim import paths
+    out = subprocess.run([paths.tool(), "check", scene, "--json"], check=True, capture_output=True, text=True).stdout
+    d = json.loads(out)
+    tree = d["scene"]
+    trees = tree["needles"] if "needles" in tree else [tree["needle"]]
+    motions = []
+    for info, n in zip(d["needles"], trees):
+        keys, roll = [], 0.0
+        for k in n.get("motion", [{"t": 0.0, "advance": 0.0}]):
+            roll = k.get("roll", roll)
+            keys.append((k["t"], k.get("advance", 0.0), roll))
+        motions.append((info["name"], info["base_position"], info["base_direction"], keys))
+    return motions, tree["time"]["duration"]
+
+
+def keyframe_at(keys, t):
+    """(advance, roll) at time t: linear between keyframes, held after the last."""
+    if t <= keys[0][0]:
+        return keys[0][1], keys[0][2]
+    for (t0, a0, r0), (t1, a1, r1) in zip(keys, keys[1:]):
+        if t <= t1:
+            f = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
+            return a0 + f * (a1 - a0), r0 + f * (r1 - r0)
+    return keys[-1][1], keys[-1][2]
+
+
+def percentile(v, q):
+    """The q-th percentile (0-100) of v by linear interpolation, as numpy's default."""
+    v = sorted(v)
+    if not v:
+        return float("nan")
+    x = (len(v) - 1) * q / 100.0
+    i = int(math.floor(x))
+    return v[i] if i + 1 >= len(v) else v[i] + (x - i) * (v[i + 1] - v[i])
 
 
 def main():
@@ -52,6 +115,7 @@ def main():
     ap.add_argument("--speed", type=float, default=0.01, help="[m/s]")
     ap.add_argument("--hold", type=float, default=0.2, help="[s]")
     ap.add_argument("--frame", default="tissue")
+    ap.add_argument("--scene", default="", help="stream every needle of this scene its own motion (see above)")
     ap.add_argument("--status-at-ends", action="store_true",
                     help="read ~status only before and after the insertion (no 1 kHz status stream to the client: "
                          "the largest step is then not seen)")
@@ -69,9 +133,13 @@ def main():
     lock = threading.Lock()
     last = {}
 
+    step_ms = {}  # step -> its time, while recording
+
     def on_status(m):
         with lock:
             last["m"] = m
+            if "record" in last:
+                step_ms[m.step] = m.step_ms
 
     sub = rospy.Subscriber(args.node + "/status", SimStatus, on_status, queue_size=1)
     monitors = []
@@ -91,37 +159,49 @@ def main():
         monitors.append(rospy.Subscriber("/%s/%s/wrench" % (args.node, args.needle), WrenchStamped, on_wrench,
                                          queue_size=100))
         monitors.append(rospy.Subscriber(args.node + "/estimate", ParameterEstimate, lambda m: estimates.append(m)))
-    if args.subscribe_all:
+    t_in = args.depth / args.speed
+    if args.scene:
+        motions, total = scene_motions(args.scene)
+    else:
+        # advance along the direction, hold, withdraw: as keyframes
+        motions = [(args.needle, args.base, args.direction,
+                    [(0.0, 0.0, 0.0), (t_in, args.depth, 0.0), (t_in + args.hold, args.depth, 0.0),
+                     (2 * t_in + args.hold, 0.0, 0.0)])]
+        total = 2 * t_in + args.hold
+    streams = []
+    for name, base, direction, keys in motions:
+        n = math.sqrt(sum(c * c for c in direction))
+        streams.append((rospy.Publisher("/%s/%s/command_pose" % (args.node, name), PoseStamped, queue_size=10),
+                        base, [c / n for c in direction], keys))
+    while not rospy.is_shutdown() and "m" not in last:
+        rospy.sleep(0.05)
+    if args.subscribe_all:  # once the node runs (a DBS scene's pre-step comes before its topics)
         prefix = "/" + args.node.strip("/") + "/"
         for name, _ in rospy.get_published_topics():
             if name.startswith(prefix) or name in ("/tf", "/diagnostics"):
                 monitors.append(rospy.Subscriber(name, rospy.AnyMsg, lambda m: None, queue_size=1))
         rospy.loginfo("node_deadlines: subscribed to %d topics", len(monitors))
-    pub = rospy.Publisher("/%s/%s/command_pose" % (args.node, args.needle), PoseStamped, queue_size=10)
-    n = math.sqrt(sum(c * c for c in args.direction))
-    d = [c / n for c in args.direction]
-    # The smallest rotation carrying x onto d (the pose convention: x along the needle).
-    w = 1.0 + d[0]
-    q = (w, 0.0, -d[2], d[1]) if w > 1e-9 else (0.0, 0.0, 1.0, 0.0)
-    qn = math.sqrt(sum(c * c for c in q))
-    q = [c / qn for c in q]
-    while not rospy.is_shutdown() and "m" not in last:
-        rospy.sleep(0.05)
-    t_in = args.depth / args.speed
-    total = 2 * t_in + args.hold
 
-    def pose_at(t):
-        a = args.speed * t if t < t_in else args.depth if t < t_in + args.hold else max(0.0, args.depth - args.speed * (t - t_in - args.hold))
+    def pose_of(stream, t):
+        _, base, d, keys = stream
+        a, roll = keyframe_at(keys, t)
         p = PoseStamped()
         p.header.stamp = rospy.Time.now()
         p.header.frame_id = args.frame
-        p.pose.position.x, p.pose.position.y, p.pose.position.z = [b + a * c for b, c in zip(args.base, d)]
-        p.pose.orientation.w, p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z = q
+        p.pose.position.x, p.pose.position.y, p.pose.position.z = [b + a * c for b, c in zip(base, d)]
+        p.pose.orientation.w, p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z = quaternion_along(d, roll)
         return p
+
+    def pose_at(t):  # the first needle's (the prediction's)
+        return pose_of(streams[0], t)
+
+    def publish_all(t):
+        for s in streams:
+            s[0].publish(pose_of(s, t))
 
     # The rest pose until the node runs, then the insertion.
     for _ in range(20):
-        pub.publish(pose_at(0.0))
+        publish_all(0.0)
         rospy.sleep(0.01)
     with lock:
         m0 = last["m"]
@@ -133,7 +213,7 @@ def main():
         # The base held where it will be 0.2 s in, for N steps (a plan the guard accepts).
         rospy.sleep(0.2)
         req = PredictInsertionRequest()
-        req.needle = args.needle
+        req.needle = motions[0][0]
         req.dt = args.predict_dt
         req.trajectory.header.frame_id = args.frame
         w = NeedleWaypoint()
@@ -158,13 +238,15 @@ def main():
         predictor = threading.Thread(target=predict, daemon=True)
         predictor.start()
     rate = rospy.Rate(args.rate)
+    with lock:
+        last["record"] = True
     t0 = rospy.Time.now()
     step_max = 0.0
     while not rospy.is_shutdown():
         t = (rospy.Time.now() - t0).to_sec()
         if t > total + 0.2:
             break
-        pub.publish(pose_at(t))
+        publish_all(t)
         if not args.status_at_ends:
             with lock:
                 step_max = max(step_max, last["m"].step_ms)
@@ -173,7 +255,7 @@ def main():
         # The robot holds its last pose until the prediction is answered (the node holds the
         # needle without commands), the loop's steps counted on.
         while predictor.is_alive() and not rospy.is_shutdown():
-            pub.publish(pose_at(total + 1.0))
+            publish_all(total + 1.0)
             rate.sleep()
     if args.status_at_ends:
         last["m"] = rospy.wait_for_message(args.node + "/status", SimStatus)
@@ -187,6 +269,11 @@ def main():
           "(%.2f %%), largest step seen %.2f ms, %d commands rejected, load average %.2f %.2f %.2f" % (
               steps, total, args.rate, late, 100.0 * late / max(steps, 1), skipped, 100.0 * skipped / max(steps, 1),
               step_max, m1.rejected_commands - m0.rejected_commands, load[0], load[1], load[2]))
+    with lock:
+        times = [v for k, v in step_ms.items() if m0.step < k <= m1.step]
+    if times:
+        print("node_deadlines: step times of %d steps: median %.3f ms, p99.9 %.3f ms, max %.3f ms" % (
+            len(times), percentile(times, 50), percentile(times, 99.9), max(times)))
     if args.echo_wrench > 0:
         # The first estimate that used the whole insertion (the estimator lags the loop by its
         # refits' wall time), at most --echo-wait seconds.
