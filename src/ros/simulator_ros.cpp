@@ -396,7 +396,8 @@ void SimulatorRos::errorLoop() {
     for (auto& e : errs) e.indicator.clear();  // (not needed here)
     // An estimate that took w of wall time is followed by w (1 / duty - 1) without one: on
     // two cores an estimate running back to back (the DBS scenes' take longer than their
-    // period) slows the stepping thread beside it through the shared caches and memory.
+    // period) slowed the stepping thread beside it by about half even at SCHED_IDLE
+    // (doc/benchmarks.md, "Bounded step time").
     const auto t1 = std::chrono::steady_clock::now();
     const auto rest = std::chrono::duration_cast<std::chrono::steady_clock::duration>(
         (t1 - t0) * (1.0 / params_->target_error_duty - 1.0));
