@@ -48,7 +48,7 @@ void SimulatorRos::warnRule(GuardRule rule, const std::string& source, const std
   const ros::WallTime now = ros::WallTime::now();
   unsigned long suppressed = 0;
   {
-    std::lock_guard<std::mutex> lk(warn_mutex_);
+    std::lock_guard<PiMutex> lk(warn_mutex_);
     const int r = static_cast<int>(rule);
     ros::WallTime& last = last_warning_[r];
     if (!last.isZero() && (now - last).toSec() < 1.0) {
@@ -97,7 +97,7 @@ bool SimulatorRos::toTissue(const std::string& frame, const ros::Time& stamp, co
 }
 
 void SimulatorRos::admit(int needle, const PoseCommand& c, const std::string& source) {
-  std::lock_guard<std::mutex> lk(queue_mutex_);
+  std::lock_guard<PiMutex> lk(queue_mutex_);
   const double now = simSeconds(ros::Time::now());
   PoseCommand cmd = c;
   if (params_->as_fast_as_possible) cmd.stamp = std::numeric_limits<double>::quiet_NaN();  // stamps mean nothing then
@@ -111,7 +111,7 @@ void SimulatorRos::onPose(int needle, const geometry_msgs::PoseStamped::ConstPtr
   if (!toTissue(m->header.frame_id, m->header.stamp, source, to_tissue)) return;
   double stamp = std::numeric_limits<double>::quiet_NaN();
   if (!m->header.stamp.isZero()) {
-    std::lock_guard<std::mutex> lk(queue_mutex_);
+    std::lock_guard<PiMutex> lk(queue_mutex_);
     stamp = simSeconds(m->header.stamp);
   }
   PoseCommand c = toCommand(m->pose, to_tissue, stamp);
@@ -167,7 +167,7 @@ void SimulatorRos::lookupTfCommands() {
     p.orientation = tr.transform.rotation;
     double stamp = std::numeric_limits<double>::quiet_NaN();
     if (!tr.header.stamp.isZero()) {
-      std::lock_guard<std::mutex> lk(queue_mutex_);
+      std::lock_guard<PiMutex> lk(queue_mutex_);
       stamp = simSeconds(tr.header.stamp);
     }
     PoseCommand c = toCommand(p, Rigid{}, stamp);

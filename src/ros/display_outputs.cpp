@@ -101,11 +101,14 @@ void DisplayOutputs::publish(const Simulation& sim, const std::shared_ptr<const 
   f->predictions = std::move(predictions);
   f->primary = sim.numTargets() > 0 ? std::min(primary, sim.numTargets() - 1) : -1;
   f->target_markers = target_markers_pub_.getNumSubscribers() > 0;
-  if (sim.hasTissue()) {
+  if (sim.hasTissue() && f->t - last_fields_ >= 1.0 / p_.field_rate) {
     f->cloud = cloud_pub_.getNumSubscribers() > 0;
     f->surface = surface_pub_.getNumSubscribers() > 0;
     f->errors = error_pub_.getNumSubscribers() > 0;
-    if (f->cloud || f->surface || f->errors) f->tissue = snapshots_.take(sim, f->cloud || f->errors, f->surface);
+    if (f->cloud || f->surface || f->errors) {
+      f->tissue = snapshots_.take(sim, f->cloud || f->errors, f->surface);
+      last_fields_ = f->t;
+    }
   }
   out_.post([this, f] { build(*f); });
 }

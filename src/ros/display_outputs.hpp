@@ -3,7 +3,7 @@
 // (~tissue/deformation PointCloud2 with x y z dx dy dz von_mises eta; ~tissue/surface, a
 // semi-transparent TRIANGLE_LIST coloured by |u| on a scale that changes slowly, with its
 // legend in ~tissue/legend), the error indicator per refinement level
-// (~tissue/error_markers), each needle (~<needle>/path, ~<needle>/marker, and ~<needle>/tip_path,
+// (~tissue/error_markers; these three fields at most at ~field_rate), each needle (~<needle>/path, ~<needle>/marker, and ~<needle>/tip_path,
 // the centre line of its cut path where it is now), the targets
 // (~target/markers: each target, its error bound's sphere and the online estimate's 95 %
 // ellipsoid), and the tf frames <needle>_tip, <needle>_base, <needle>_bevel (bevel
@@ -52,6 +52,7 @@ class DisplayOutputs {
   std::atomic<double> rate_;
   std::atomic<double> range_;
   double peak_ = 0, peak_time_ = 0;
+  double last_fields_ = -1e300;  // wall time of the last fields' snapshot (stepping thread)
   bool broadcast_bases_ = true;
   std::vector<double> radius_;
   double target_size_ = 0;  // set from the tissue's size on first use

@@ -22,7 +22,7 @@ InsertAction::InsertAction(SimulatorRos& node, ros::NodeHandle& pnh, double defa
 void InsertAction::release(const Active& a) { node_.guard().release(a.needle, kHolder); }
 
 void InsertAction::shutdown() {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   if (active_) {
     release(*active_);
     needle_sim::InsertNeedleResult r;
@@ -70,7 +70,7 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
   a.needle = needle;
   SimulatorRos::Plan plan;
   {
-    std::lock_guard<std::mutex> sim_lock(node_.sim_mutex_);
+    std::lock_guard<PiMutex> sim_lock(node_.sim_mutex_);
     const Simulation& sim = *node_.sim_;
     if (!node_.failure_.empty()) return reject("the simulation has failed; call ~reset first");
     if (!g.target.empty()) {
@@ -104,7 +104,7 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
     const std::string why = node_.pipeline_->checkPlan(sim, needle, plan.waypoints, poses);
     if (!why.empty()) return reject("the motion breaks a limit: " + why);
     a.duration = w.time;
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     // One source at a time: the goal holds the needle until it ends (a goal under way on
     // this needle is the same holder; its preemption below keeps the hold).
     std::string owner_why;
@@ -124,7 +124,7 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
   }
   const std::string id = gh.getGoalID().id;
   plan.done = [this, id](const std::string& why) {  // stepping thread
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     if (!active_ || active_->gh.getGoalID().id != id) return;
     if (why.empty()) {
       active_->taken = true;
@@ -141,8 +141,8 @@ void InsertAction::onGoal(Server::GoalHandle gh) {
 }
 
 void InsertAction::onCancel(Server::GoalHandle gh) {
-  std::lock_guard<std::mutex> sim_lock(node_.sim_mutex_);  // (the order of onGoal: actionlib, sim, this)
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> sim_lock(node_.sim_mutex_);  // (the order of onGoal: actionlib, sim, this)
+  std::lock_guard<PiMutex> lk(mutex_);
   if (!active_ || active_->gh.getGoalID().id != gh.getGoalID().id) return;
   node_.holdNeedle(active_->needle);  // the needle holds where it is
   const needle_sim::InsertNeedleResult r = result(*active_, node_.obs_, "preempted: the needle holds");
@@ -152,7 +152,7 @@ void InsertAction::onCancel(Server::GoalHandle gh) {
 }
 
 void InsertAction::superseded(int needle, const std::string& by) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   if (!active_ || active_->needle != needle) return;
   const needle_sim::InsertNeedleResult r = result(*active_, node_.obs_, "aborted: " + by + " took over the needle");
   release(*active_);
@@ -162,7 +162,7 @@ void InsertAction::superseded(int needle, const std::string& by) {
 }
 
 void InsertAction::update(const Observables& o) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   if (!active_ || !active_->taken) return;
   Active& a = *active_;
   if (a.needle < node_.tip_speed_.numNeedles())
@@ -194,7 +194,7 @@ void InsertAction::update(const Observables& o) {
 }
 
 void InsertAction::abort(const std::string& why) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   if (!active_) return;
   needle_sim::InsertNeedleResult r;
   r.message = why;

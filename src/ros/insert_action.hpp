@@ -17,6 +17,7 @@
 
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/sim/observables.hpp"
+#include "needle_sim/core/pi_mutex.hpp"
 
 namespace needle_sim {
 
@@ -55,7 +56,7 @@ class InsertAction {
   needle_sim::InsertNeedleResult result(const Active& a, const Observables& o, const std::string& msg) const;
   SimulatorRos& node_;
   double default_speed_;
-  std::mutex mutex_;  // active_
+  PiMutex mutex_;  // active_
   std::optional<Active> active_;
   Server server_;
 };

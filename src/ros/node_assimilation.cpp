@@ -125,7 +125,7 @@ NodeAssimilation::NodeAssimilation(ros::NodeHandle pnh, const AssimilationParame
 NodeAssimilation::~NodeAssimilation() {
   for (auto& s : subs_) s.shutdown();
   {
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     stop_ = true;
     cancel_ = true;  // a refit under way stops at its run's next step
   }
@@ -137,7 +137,7 @@ void NodeAssimilation::refuse(Rule r, const char* topic, const std::string& why)
   const ros::WallTime now = ros::WallTime::now();
   long more = 0;
   {
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     ++refused_[r];
     ros::WallTime& last = last_warning_[r];
     if (!last.isZero() && (now - last).toSec() < 1.0) {
@@ -179,7 +179,7 @@ void NodeAssimilation::queue(const Sample& s, const char* topic) {
   // only, when it runs behind, the sample waits for it.
   const double clock = sim_seconds_(ros::Time::now());
   {
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     if (s.t <= committed_) {
       rule = Stale;
       why = "stamped at t = " + std::to_string(s.t) + " s, at or before the estimate's window closed (t = " +
@@ -205,7 +205,7 @@ void NodeAssimilation::onWrench(const geometry_msgs::WrenchStamped::ConstPtr& m)
   if (m->header.frame_id == base_frame_) {
     s.force = f.x();  // the base frame's x: the axial force (as ~<needle>/wrench gives it)
   } else {
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     s.force = (r.rotation * f).dot(axis_);  // along the needle, towards its tip
   }
   s.channel = 0;
@@ -247,7 +247,7 @@ void NodeAssimilation::onShape(const geometry_msgs::PoseArray::ConstPtr& m) {
 void NodeAssimilation::afterStep(Simulation& sim, const Observables& obs) {
   bool due = false;
   {
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     if (adoption_) {
       // The stepping thread, between steps: the value the ramp has reached is what the next
       // step uses.
@@ -287,14 +287,14 @@ void NodeAssimilation::afterStep(Simulation& sim, const Observables& obs) {
 }
 
 void NodeAssimilation::setTarget(const std::string& name, const Vec3& planned) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   target_edits_.push_back({name, planned});
   if (std::find(target_names_.begin(), target_names_.end(), name) == target_names_.end()) target_names_.push_back(name);
 }
 
 void NodeAssimilation::restart() {
   {
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     ++generation_;
     cancel_ = true;  // the refit under way is of the old session
     pending_.clear();
@@ -352,7 +352,7 @@ void NodeAssimilation::worker() {
     double until = 0;
     long rejected = 0;
     {
-      std::unique_lock<std::mutex> lk(mutex_);
+      std::unique_lock<PiMutex> lk(mutex_);
       wake_.wait(lk, [&] { return stop_ || generation_ != generation || sim_time_ - p_.max_latency + 1e-12 >= next_due_; });
       if (stop_) return;
       if (generation_ != generation) {  // ~reset: a new session
@@ -398,7 +398,7 @@ void NodeAssimilation::worker() {
         s.fit.target_edits = target_edits;
         // Adopted as soon as fitted, before the targets' prediction (whole-scene runs: seconds).
         s.on_fit = [this, &generation](const AssimilationCheckpoint& k) {
-          std::lock_guard<std::mutex> lk(mutex_);
+          std::lock_guard<PiMutex> lk(mutex_);
           if (generation_ != generation || cancel_ || !p_.adopt || !k.consistent) return;
           // A key the data do not determine yet (infinite std) keeps its value in use.
           to_adopt_ = k.values;
@@ -415,7 +415,7 @@ void NodeAssimilation::worker() {
       }
       const size_t before = a->checkpoints().size();
       a->update(until);
-      std::lock_guard<std::mutex> lk(mutex_);
+      std::lock_guard<PiMutex> lk(mutex_);
       if (generation_ != generation || cancel_) continue;  // reset meanwhile: the estimate is of the old session
       if (a->checkpoints().size() > before) {
         const AssimilationCheckpoint& k = a->checkpoints().back();
@@ -436,7 +436,7 @@ void NodeAssimilation::worker() {
     } catch (const std::exception& e) {
       // A fit that fails (the simulation diverges at a trial value, a record it cannot fit)
       // is reported, never published; the samples stay for the next attempt.
-      std::lock_guard<std::mutex> lk(mutex_);
+      std::lock_guard<PiMutex> lk(mutex_);
       if (cancel_) continue;  // stopped (the node's end, ~reset): the top of the loop starts anew
       ++failures_;
       last_failure_ = e.what();
@@ -446,7 +446,7 @@ void NodeAssimilation::worker() {
 }
 
 std::vector<TargetPrediction> NodeAssimilation::predictions() {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   return predictions_;
 }
 
@@ -481,7 +481,7 @@ void NodeAssimilation::publish(const AssimilationCheckpoint& k, const ForceAssim
 }
 
 void NodeAssimilation::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   long rejected = 0;
   for (int r = 0; r < kRules; ++r) {
     stat.add(std::string("refused_") + kRuleNames[r], refused_[r]);

@@ -37,6 +37,7 @@
 #include "needle_sim/scene/scene.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "step_frame.hpp"
+#include "needle_sim/core/pi_mutex.hpp"
 
 namespace needle_sim {
 
@@ -133,8 +134,8 @@ class NodeAssimilation {
 
   // Stops a refit under way (every run at its next step): the node's end, ~reset.
   std::atomic<bool> cancel_{false};
-  std::mutex mutex_;  // everything below
-  std::condition_variable wake_;
+  PiMutex mutex_;  // everything below
+  std::condition_variable_any wake_;
   bool stop_ = false;
   long generation_ = 0;            // ~reset moves it: the estimator drops what it had
   double sim_time_ = 0;            // the simulation's time after the last step

@@ -116,6 +116,8 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   pnh.param("as_fast_as_possible", p.as_fast_as_possible, p.as_fast_as_possible);
   pnh.param("display_rate", p.display_rate, p.display_rate);
   if (!(p.display_rate > 0) || !std::isfinite(p.display_rate)) throw InputError("", "~display_rate", "must be > 0");
+  pnh.param("field_rate", p.field_rate, p.field_rate);
+  if (!(p.field_rate > 0) || !std::isfinite(p.field_rate)) throw InputError("", "~field_rate", "must be > 0");
   pnh.param("display_range", p.display_range, p.display_range);
   if (!(p.display_range >= 0) || !std::isfinite(p.display_range))
     throw InputError("", "~display_range", "must be >= 0 (0: adaptive)");
@@ -130,8 +132,10 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   if (p.setup_threads < 0 || p.setup_threads > 64)
     throw InputError("", "~setup_threads", "must be in [0, 64] (0: every core), got " + std::to_string(p.setup_threads));
   pnh.param("realtime_priority", p.realtime_priority, p.realtime_priority);
-  if (p.realtime_priority < 0 || p.realtime_priority > 99)
-    throw InputError("", "~realtime_priority", "must be in [0, 99] (0: the default scheduler), got " + std::to_string(p.realtime_priority));
+  if (p.realtime_priority < -1 || p.realtime_priority > 99)
+    throw InputError("", "~realtime_priority",
+                     "must be in [-1, 99] (0: the default scheduler; -1: SCHED_FIFO where permitted), got " +
+                         std::to_string(p.realtime_priority));
   pnh.param("predict_dt", p.predict_dt, p.predict_dt);
   pnh.param("predict_sample_period", p.predict_sample_period, p.predict_sample_period);
   pnh.param("predict_max_steps", p.predict_max_steps, p.predict_max_steps);

@@ -39,6 +39,11 @@ struct NodeParameters {
   double max_tip_speed = 0;
   bool as_fast_as_possible = false;
   double display_rate = 30;
+  // ~field_rate [Hz]: the tissue's fields (~tissue/surface, ~tissue/deformation,
+  // ~tissue/error_markers) at most this often, within ~display_rate: the DBS brain's surface is
+  // 57,000 triangles, 6.9 MB a message; at 30 Hz its building, sending and a subscriber's
+  // reading took more than a core of the two (doc/benchmarks.md "Bounded step time").
+  double field_rate = 5;
   double display_range = 0;   // [m] top of the colour scale; 0: adapts slowly to the motion
   double display_range_min = 1e-7;  // [m] the adaptive range never goes below this
   double output_period = 0.001;
@@ -48,9 +53,13 @@ struct NodeParameters {
   // machine is shared, and OpenBLAS's spinning threads made a busy machine's load 2-4x slower.
   int setup_threads = 1;
   // ~realtime_priority: SCHED_FIFO priority of the stepping thread (1-99; 0: the default
-  // scheduler). A control loop's simulator, like the loop itself, needs it to keep its
-  // deadlines on a loaded machine; without the privilege the node warns and runs on.
-  int realtime_priority = 0;
+  // scheduler; -1, the default: kAutoRealtimePriority where the process may take it, else the
+  // default scheduler). A control loop's simulator, like the loop itself, needs it to keep its
+  // deadlines on a loaded machine: on the default scheduler the DBS scene's steps waited for
+  // the clients' and the output's threads (doc/benchmarks.md "Bounded step time"). An explicit
+  // priority the process may not take is warned about; the node runs on.
+  int realtime_priority = -1;
+  static constexpr int kAutoRealtimePriority = 10;
   double predict_dt = 0.01, predict_sample_period = 0.05;
   // ~predict_max_dt [s]: the coarsest time step a ~predict or ~steer request may ask for;
   // 0 (the default): 10 times the scene's dt (resolved once the scene is loaded).

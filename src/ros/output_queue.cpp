@@ -10,7 +10,7 @@ OutputQueue::OutputQueue(double period) : period_(period) { thread_ = std::threa
 
 OutputQueue::~OutputQueue() {
   {
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     stop_ = true;
   }
   cv_.notify_all();
@@ -20,7 +20,7 @@ OutputQueue::~OutputQueue() {
 void OutputQueue::post(std::function<void()> job) {
   bool wake;
   {
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     wake = queue_.empty() && (period_ == 0 || idle_);
     if (queue_.size() >= kMax) {
       queue_.pop_front();
@@ -37,7 +37,7 @@ void OutputQueue::loop() {
   for (;;) {
     std::deque<std::function<void()>> jobs;
     {
-      std::unique_lock<std::mutex> lk(mutex_);
+      std::unique_lock<PiMutex> lk(mutex_);
       auto ready = [&] { return stop_ || !queue_.empty(); };
       if (period_ > 0 && empty < 50) {
         cv_.wait_for(lk, std::chrono::duration<double>(period_), ready);

@@ -12,6 +12,7 @@
 #include <functional>
 #include <mutex>
 #include <thread>
+#include "needle_sim/core/pi_mutex.hpp"
 
 namespace needle_sim {
 
@@ -27,8 +28,8 @@ class OutputQueue {
  private:
   void loop();
   double period_;
-  std::mutex mutex_;
-  std::condition_variable cv_;
+  PiMutex mutex_;
+  std::condition_variable_any cv_;
   std::deque<std::function<void()>> queue_;
   bool stop_ = false, idle_ = false;
   std::atomic<uint64_t> dropped_{0};

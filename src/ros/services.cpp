@@ -36,7 +36,7 @@ std::string SimulatorRos::frameRefusal(const std::string& field, const std::stri
 }
 
 bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
-  std::lock_guard<std::mutex> lk(sim_mutex_);
+  std::lock_guard<PiMutex> lk(sim_mutex_);
   try {
     load();
   } catch (const std::exception& e) {
@@ -54,7 +54,7 @@ bool SimulatorRos::onReset(std_srvs::Trigger::Request&, std_srvs::Trigger::Respo
 }
 
 bool SimulatorRos::onSetTarget(needle_sim::SetTarget::Request& req, needle_sim::SetTarget::Response& res) {
-  std::lock_guard<std::mutex> lk(sim_mutex_);
+  std::lock_guard<PiMutex> lk(sim_mutex_);
   try {
     primary_target_ = sim_->setTarget(req.name, fromPoint(req.point));
     names_ = std::make_shared<const ObservableNames>(observableNames(*sim_));
@@ -147,7 +147,7 @@ bool SimulatorRos::onPredict(needle_sim::PredictInsertion::Request& req, needle_
   {
     // The state of now, copied under the lock (about a millisecond); the prediction runs
     // without it, so the live simulation goes on meanwhile.
-    std::lock_guard<std::mutex> lk(sim_mutex_);
+    std::lock_guard<PiMutex> lk(sim_mutex_);
     if (!failure_.empty()) return refuse("the simulation has failed (" + failure_ + "); call ~reset first");
     target = req.target.empty() ? (sim_->numTargets() > 0 ? std::min(primary_target_, sim_->numTargets() - 1) : -1)
                                 : sim_->findTarget(req.target);

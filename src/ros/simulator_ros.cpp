@@ -95,7 +95,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   updater_->add("simulation", this, &SimulatorRos::diagnose);
   updater_->add("tip_speed", this, &SimulatorRos::diagnoseTipSpeed);
   diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) {
-    std::lock_guard<std::mutex> lk(diag_mutex_);
+    std::lock_guard<PiMutex> lk(diag_mutex_);
     if (!diag_stopped_) updater_->update();
   });
   subscribeCommands();
@@ -110,11 +110,11 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
         pnh_, P.assimilation, P.scene_file, P.overrides, scene_, P.command_source != "scene", replay,
         *tf_buffer_, P.tissue_frame, P.allow_empty_frame,
         [this](const ros::Time& t) {
-          std::lock_guard<std::mutex> lk(queue_mutex_);
+          std::lock_guard<PiMutex> lk(queue_mutex_);
           return simSeconds(t);
         },
         [this](double t) {
-          std::lock_guard<std::mutex> lk(queue_mutex_);
+          std::lock_guard<PiMutex> lk(queue_mutex_);
           return origin_.isZero() ? ros::Time::now() : origin_ + ros::Duration(t);
         });
     updater_->add("assimilation", assimilation_.get(), &NodeAssimilation::diagnose);
@@ -168,7 +168,7 @@ SimulatorRos::~SimulatorRos() {
   set_target_srv_.shutdown();
   for (auto& sub : command_subs_) sub.shutdown();
   {
-    std::lock_guard<std::mutex> lk(diag_mutex_);
+    std::lock_guard<PiMutex> lk(diag_mutex_);
     diag_stopped_ = true;
   }
   diag_timer_.stop();
@@ -180,13 +180,13 @@ SimulatorRos::~SimulatorRos() {
   reconfigure_.reset();
   if (action_) action_->shutdown();
   {
-    std::lock_guard<std::mutex> lk(queue_mutex_);
+    std::lock_guard<PiMutex> lk(queue_mutex_);
     stop_ = true;
   }
   wake_.notify_all();
   if (thread_.joinable()) thread_.join();
   {
-    std::lock_guard<std::mutex> lk(wrench_mutex_);
+    std::lock_guard<PiMutex> lk(wrench_mutex_);
     wrench_stop_ = true;
   }
   wrench_cv_.notify_all();
@@ -195,7 +195,7 @@ SimulatorRos::~SimulatorRos() {
   // the diagnostics (which read it) are done (found by ThreadSanitizer: the node-threads test).
   assimilation_.reset();
   {
-    std::lock_guard<std::mutex> lk(error_mutex_);
+    std::lock_guard<PiMutex> lk(error_mutex_);
     error_stop_ = true;
   }
   error_cv_.notify_all();
@@ -212,14 +212,14 @@ void SimulatorRos::load() {
   so.target_errors = params_->target_error_period > 0;
   sim_ = std::make_unique<Simulation>(scene_, so);
   {
-    std::lock_guard<std::mutex> lk(error_mutex_);
+    std::lock_guard<PiMutex> lk(error_mutex_);
     errors_latest_.clear();
     errors_step_ = -1;
   }
   last_error_time_ = -1e300;
   wrench_models_.clear();  // a new scene: no slope from the old one's last step
   {
-    std::lock_guard<std::mutex> lk(wrench_mutex_);
+    std::lock_guard<PiMutex> lk(wrench_mutex_);
     wrench_table_.ticks.clear();
     wrench_table_.step.clear();
   }
@@ -232,7 +232,7 @@ void SimulatorRos::load() {
     pipeline_->restart(*sim_);
   }
   {
-    std::lock_guard<std::mutex> lk(queue_mutex_);
+    std::lock_guard<PiMutex> lk(queue_mutex_);
     origin_ = ros::Time(0);  // restarted by the next tick
   }
   failure_.clear();
@@ -265,7 +265,7 @@ void SimulatorRos::onTimer(const ros::TimerEvent&) {
   if (!base_frames_.empty()) lookupTfCommands();
   bool restart = false;
   {
-    std::lock_guard<std::mutex> lk(queue_mutex_);
+    std::lock_guard<PiMutex> lk(queue_mutex_);
     if (origin_.isZero()) restartClock(now);
     const long due = schedule_.tick((now - origin_).toSec());
     if (due < 0) restart = true;
@@ -285,19 +285,45 @@ void SimulatorRos::restartAfterClockJump(const char* what) {
   onReset(req, res);
 }
 
+int SimulatorRos::steppingPriority() const {
+  // Not when stepping back to back (~as_fast_as_possible) unless asked for: a FIFO thread that
+  // never sleeps holds its core for all but the kernel's real-time throttling share.
+  const int p = params_->realtime_priority;
+  if (p == 0 || (p < 0 && params_->as_fast_as_possible)) return 0;
+  return p < 0 ? NodeParameters::kAutoRealtimePriority : p;
+}
+
 void SimulatorRos::setStepperPriority() {
   nameThisThread("ns_step");
   flushDenormalsToZero();  // as the tool's steps (inherited from main in the node; a nodelet's thread sets it here)
-  const int prio = params_->realtime_priority;
-  if (prio <= 0) return;
+  const bool automatic = params_->realtime_priority < 0;
+  const int prio = steppingPriority();
+  if (prio == 0) return;
   sched_param sp{};
   sp.sched_priority = prio;
   const int err = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp);
-  if (err != 0)
+  realtime_priority_ = err == 0 ? prio : 0;
+  if (err == 0) waitedForWorkNice() = 0;  // background_priority.hpp
+  if (err == 0)
+    ROS_INFO("needle_sim: stepping thread on SCHED_FIFO priority %d%s", prio, automatic ? " (~realtime_priority: -1)" : "");
+  else if (automatic)
+    ROS_INFO("needle_sim: the stepping thread runs on the default scheduler (SCHED_FIFO not permitted: %s; grant "
+             "CAP_SYS_NICE or an rtprio limit for steps that other threads cannot delay)", std::strerror(err));
+  else
     ROS_WARN("needle_sim: ~realtime_priority %d: cannot take SCHED_FIFO (%s); the stepping thread runs on the default "
              "scheduler (grant CAP_SYS_NICE or an rtprio limit)", prio, std::strerror(err));
-  else
-    ROS_INFO("needle_sim: stepping thread on SCHED_FIFO priority %d", prio);
+}
+
+void SimulatorRos::leaveRealtimePriority(double behind) {
+  // Only the automatic priority: an explicit one is the deployment's decision.
+  if (realtime_priority_ == 0 || params_->realtime_priority > 0) return;
+  sched_param none{};
+  if (pthread_setschedparam(pthread_self(), SCHED_OTHER, &none) != 0) return;
+  realtime_priority_ = 0;
+  waitedForWorkNice() = 10;
+  ROS_WARN("needle_sim: the simulation is %.1f s behind the clock: it does not keep real time here, and the stepping "
+           "thread, stepping back to back, leaves SCHED_FIFO (~realtime_priority -1) so as not to hold a core",
+           behind);
 }
 
 void SimulatorRos::worker() {
@@ -305,12 +331,12 @@ void SimulatorRos::worker() {
   const bool as_fast = params_->as_fast_as_possible;
   for (;;) {
     {
-      std::unique_lock<std::mutex> lk(queue_mutex_);
+      std::unique_lock<PiMutex> lk(queue_mutex_);
       wake_.wait(lk, [&] { return stop_ || as_fast || schedule_.pending() > 0; });
       if (stop_) return;
       if (!as_fast) schedule_.takeStep();
     }
-    std::lock_guard<std::mutex> lk(sim_mutex_);
+    std::lock_guard<PiMutex> lk(sim_mutex_);
     applyCommands();
     stepOnce();
   }
@@ -321,7 +347,7 @@ void SimulatorRos::pacedWorker() {
   for (;;) {
     bool back = false;
     {
-      std::unique_lock<std::mutex> lk(queue_mutex_);
+      std::unique_lock<PiMutex> lk(queue_mutex_);
       if (stop_) return;
       const ros::Time now = ros::Time::now();
       if (origin_.isZero()) restartClock(now);
@@ -334,15 +360,15 @@ void SimulatorRos::pacedWorker() {
     // The due steps (several after a stall: back to back, each counted late if it is).
     for (;;) {
       {
-        std::lock_guard<std::mutex> lk(queue_mutex_);
+        std::lock_guard<PiMutex> lk(queue_mutex_);
         if (stop_) return;
         if (!schedule_.takeStep()) break;
       }
-      std::lock_guard<std::mutex> lk(sim_mutex_);
+      std::lock_guard<PiMutex> lk(sim_mutex_);
       applyCommands();
       stepOnce();
     }
-    std::unique_lock<std::mutex> lk(queue_mutex_);
+    std::unique_lock<PiMutex> lk(queue_mutex_);
     if (origin_.isZero()) continue;  // restarted (~reset): the clock starts again now
     const double wait = schedule_.nextDue() - (ros::Time::now() - origin_).toSec();
     if (wait > 0) wake_.wait_for(lk, std::chrono::duration<double>(wait), [&] { return stop_; });
@@ -381,7 +407,7 @@ void SimulatorRos::errorLoop() {
   for (;;) {
     std::unique_ptr<Simulation> job;
     {
-      std::unique_lock<std::mutex> lk(error_mutex_);
+      std::unique_lock<PiMutex> lk(error_mutex_);
       error_cv_.wait(lk, [&] { return error_stop_ || error_job_; });
       if (error_stop_) return;
       job = std::move(error_job_);
@@ -401,7 +427,7 @@ void SimulatorRos::errorLoop() {
     const auto t1 = std::chrono::steady_clock::now();
     const auto rest = std::chrono::duration_cast<std::chrono::steady_clock::duration>(
         (t1 - t0) * (1.0 / params_->target_error_duty - 1.0));
-    std::lock_guard<std::mutex> lk(error_mutex_);
+    std::lock_guard<PiMutex> lk(error_mutex_);
     next_error_wall_ = t1 + rest;
     const double w = std::chrono::duration<double>(t1 - t0).count();
     ++error_estimates_;
@@ -420,9 +446,11 @@ void SimulatorRos::updateTargetErrors() {
   // With goal-oriented adaptivity the simulation estimates on its own passes.
   if (sim_->adaptation() && sim_->adaptation()->settings().estimator == AdaptivitySettings::Estimator::Goal) return;
   {
-    std::lock_guard<std::mutex> lk(error_mutex_);
+    std::lock_guard<PiMutex> lk(error_mutex_);
+    // The copy is taken on this thread between steps: not while background work it would wait
+    // for is under way (a factor refresh: up to 23 ms on the DBS scene), a step later instead.
     if (!error_busy_ && sim_->time() - last_error_time_ >= params_->target_error_period - 1e-12 &&
-        std::chrono::steady_clock::now() >= next_error_wall_) {
+        std::chrono::steady_clock::now() >= next_error_wall_ && !sim_->backgroundWorkRunning()) {
       last_error_time_ = sim_->time();
       error_busy_ = true;
       error_job_ = std::make_unique<Simulation>(*sim_);
@@ -457,7 +485,7 @@ void SimulatorRos::stepOnce() {
     } catch (const NumericalError& e) {
       failure_ = e.what();
       {
-        std::lock_guard<std::mutex> lk(wrench_mutex_);
+        std::lock_guard<PiMutex> lk(wrench_mutex_);
         wrench_table_.ticks.clear();  // nothing more between steps
         wrench_table_.step.clear();
       }
@@ -468,8 +496,15 @@ void SimulatorRos::stepOnce() {
     sim_time_now_ = sim_->time();
     if (!params_->as_fast_as_possible) {
       const ros::Time end = ros::Time::now();
-      std::lock_guard<std::mutex> lk(queue_mutex_);
-      if (!origin_.isZero()) schedule_.stepDone(sim_->stepIndex(), (end - origin_).toSec());
+      double behind = 0;
+      {
+        std::lock_guard<PiMutex> lk(queue_mutex_);
+        if (!origin_.isZero()) {
+          schedule_.stepDone(sim_->stepIndex(), (end - origin_).toSec());
+          behind = (end - origin_).toSec() - sim_->time();
+        }
+      }
+      if (behind > kFifoMaxLag) leaveRealtimePriority(behind);
     }
   }
   const auto p0 = ros::WallTime::now();
@@ -511,7 +546,7 @@ void SimulatorRos::watchTipSpeed() {
 }
 
 void SimulatorRos::diagnoseTipSpeed(diagnostic_updater::DiagnosticStatusWrapper& stat) {
-  std::lock_guard<std::mutex> lk(sim_mutex_);
+  std::lock_guard<PiMutex> lk(sim_mutex_);
   const double limit = maxTipSpeed();
   std::string warn;
   stat.add("max_tip_speed", limit);

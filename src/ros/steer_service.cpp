@@ -74,7 +74,7 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
   BasePose rest;
   {
     // The state of now, copied under the lock; the planning runs without it.
-    std::lock_guard<std::mutex> lk(sim_mutex_);
+    std::lock_guard<PiMutex> lk(sim_mutex_);
     if (!failure_.empty()) return refuse("the simulation has failed (" + failure_ + "); call ~reset first");
     snapshot = std::make_unique<Simulation>(*sim_);
     rest = sim_->needle(needle).trajectory().rest();
@@ -129,7 +129,7 @@ bool SimulatorRos::onSteer(needle_sim::SteerToTarget::Request& req, needle_sim::
     std::string why;
     bool free;
     {
-      std::lock_guard<std::mutex> lk(sim_mutex_);
+      std::lock_guard<PiMutex> lk(sim_mutex_);
       free = guard().mayCommand(needle, caller, sim_->time(), why);
     }
     if (!free) {

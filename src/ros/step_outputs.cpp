@@ -37,7 +37,7 @@ void SimulatorRos::publishStep(double ms) {
   const double dw = (rtf_window_.back().first - rtf_window_.front().first).toSec();
   f.rtf = dw > 0 ? (rtf_window_.back().second - rtf_window_.front().second) / dw : 0.0;
   {
-    std::lock_guard<std::mutex> lk(queue_mutex_);
+    std::lock_guard<PiMutex> lk(queue_mutex_);
     const double clock = origin_.isZero() ? 0.0 : (f.stamp - origin_).toSec();
     f.deadlines = schedule_.counts(clock);
     if (!params_->as_fast_as_possible && !origin_.isZero()) f.lag = std::max(0.0, clock - sim_->time());
@@ -109,7 +109,7 @@ void SimulatorRos::tabulateWrenches(const ros::Time& stamp) {
       }
   }
   {
-    std::lock_guard<std::mutex> lk(wrench_mutex_);
+    std::lock_guard<PiMutex> lk(wrench_mutex_);
     table.seq = wrench_table_.seq + 1;
     table.made = std::chrono::steady_clock::now();
     wrench_table_ = std::move(table);
@@ -121,8 +121,13 @@ void SimulatorRos::wrenchLoop() {
   nameThisThread("ns_wrench");
   // Never before the stepping thread (background_priority.hpp): on two cores, at nice 0 or
   // 10, the stream made 5-8 % of the gel demo's steps late with 500 Hz poses and every output
-  // subscribed (0.3-0.7 % without it); idle, it takes what a core leaves.
-  idleThisThread();
+  // subscribed (0.3-0.7 % without it); idle, it takes what a core leaves. With the stepping
+  // thread at SCHED_FIFO, the stream is real-time output too: just below it. (Idle, it held
+  // the step's hand-over, whose condition variable's own mutex has no priority inheritance,
+  // for milliseconds while any other thread ran.)
+  sched_param sp{};
+  sp.sched_priority = std::max(1, steppingPriority() - 1);
+  if (steppingPriority() == 0 || pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp) != 0) idleThisThread();
   using clock = std::chrono::steady_clock;
   const auto period = std::chrono::duration_cast<clock::duration>(std::chrono::duration<double>(wrench_period_));
   auto next = clock::now() + period;
@@ -134,7 +139,7 @@ void SimulatorRos::wrenchLoop() {
     std::vector<std::string> frames;
     std::vector<std::pair<Vec3, Vec3>> row;
     {
-      std::unique_lock<std::mutex> lk(wrench_mutex_);
+      std::unique_lock<PiMutex> lk(wrench_mutex_);
       auto woken = [&] { return wrench_stop_ || wrench_table_.seq != sent; };
       bool step = true;
       if (wrench_table_.ticks.empty())  // nobody listens (or a failure): no tick to send, none to wake for
@@ -192,7 +197,7 @@ void SimulatorRos::sendStep(const StepFrame& f) {
 }
 
 void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
-  std::unique_lock<std::mutex> lk(sim_mutex_);
+  std::unique_lock<PiMutex> lk(sim_mutex_);
   // The recent step times, copied under the lock and sorted after it (a sort of 10,000 under
   // it would delay a 1 kHz step).
   std::vector<double> recent = step_ms_.samples();
@@ -200,7 +205,7 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   const uint64_t rej = guard().rejected(), lim = guard().limited();
   RealtimeSchedule::Counts d;
   {
-    std::lock_guard<std::mutex> q(queue_mutex_);
+    std::lock_guard<PiMutex> q(queue_mutex_);
     d = schedule_.counts(origin_.isZero() ? 0.0 : (ros::Time::now() - origin_).toSec());
   }
   const double warn = params_->deadline_warn_fraction;
@@ -278,7 +283,9 @@ void SimulatorRos::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   // The targets' live error estimates (~target_error_period, ~target_error_duty): how many,
   // their wall time.
   {
-    std::lock_guard<std::mutex> ek(error_mutex_);
+    std::lock_guard<PiMutex> ek(error_mutex_);
+    stat.add("stepping_thread", realtime_priority_ > 0 ? "SCHED_FIFO " + std::to_string(realtime_priority_.load())
+                                                       : std::string("default scheduler"));
     stat.add("target_error_estimates", error_estimates_);
     stat.add("target_error_wall_s_total", error_wall_s_total_);
     stat.add("target_error_wall_s_max", error_wall_s_max_);

@@ -30,8 +30,13 @@
 #include <visualization_msgs/Marker.h>
 #include <visualization_msgs/MarkerArray.h>
 
+#include <dirent.h>
+#include <pthread.h>
+#include <sched.h>
+
 #include <atomic>
 #include <cmath>
+#include <fstream>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -41,6 +46,7 @@
 
 #include "needle_sim/ros/simulator_ros.hpp"
 #include "wait_for.hpp"
+#include "../unit/fifo_permitted.hpp"
 
 namespace {
 
@@ -272,6 +278,76 @@ TEST(NodeThreads, TheTargetErrorEstimatesKeepToTheirDuty) {
   EXPECT_LE(total, 0.25 * elapsed + longest);
   spinner.stop();
   sim.reset();
+}
+
+// ~realtime_priority: by default (-1) the stepping thread takes SCHED_FIFO 10 where the process
+// may, and says so in the diagnostics (stepping_thread); 0 keeps the default scheduler. The
+// threads' policies are read from the kernel (sched_getscheduler of each thread named ns_step).
+namespace {
+
+// (policy, priority) of this process's thread with this name; (-1, -1) if there is none.
+std::pair<int, int> threadPolicy(const std::string& name) {
+  DIR* d = opendir("/proc/self/task");
+  std::pair<int, int> r{-1, -1};
+  if (!d) return r;
+  while (dirent* e = readdir(d)) {
+    if (e->d_name[0] == '.') continue;
+    std::ifstream comm(std::string("/proc/self/task/") + e->d_name + "/comm");
+    std::string c;
+    std::getline(comm, c);
+    if (c != name) continue;
+    const pid_t tid = static_cast<pid_t>(std::stol(e->d_name));
+    sched_param p{};
+    r.first = sched_getscheduler(tid);
+    r.second = sched_getparam(tid, &p) == 0 ? p.sched_priority : -1;
+  }
+  closedir(d);
+  return r;
+}
+}  // namespace
+
+TEST(NodeThreads, TheSteppingThreadTakesRealTimePriorityWhereItMay) {
+  const bool permitted = needle_sim_test::fifoPermitted();
+  for (const int asked : {-1, 0}) {
+    const std::string ns = "/rt_sim";
+    ros::NodeHandle nh, pnh(ns);
+    pnh.setParam("scene", std::string(NEEDLE_SIM_SOURCE_DIR) + "/config/scenes/phantom_insertion_8x4x4.yaml");
+    pnh.setParam("preflight_wall", 0.0);
+    pnh.setParam("realtime_priority", asked);
+    std::mutex m;
+    std::string said;
+    ros::Subscriber ds = nh.subscribe<diagnostic_msgs::DiagnosticArray>(
+        "/diagnostics", 100, [&](const diagnostic_msgs::DiagnosticArray::ConstPtr& a) {
+          for (const auto& st : a->status)
+            for (const auto& kv : st.values)
+              if (kv.key == "stepping_thread") {
+                std::lock_guard<std::mutex> lk(m);
+                said = kv.value;
+              }
+        });
+    auto sim = std::make_unique<needle_sim::SimulatorRos>(nh, pnh);
+    ros::AsyncSpinner spinner(2);
+    spinner.start();
+    ASSERT_TRUE(waitFor([&] { return threadPolicy("ns_step").first >= 0; }, 10.0)) << "no thread named ns_step";
+    const bool fifo = asked != 0 && permitted;
+    const std::string expected = fifo ? "SCHED_FIFO 10" : "default scheduler";
+    waitFor([&] {
+      std::lock_guard<std::mutex> lk(m);
+      return said == expected;
+    }, 10.0);
+    const auto policy = threadPolicy("ns_step");
+    EXPECT_EQ(policy.first, fifo ? SCHED_FIFO : SCHED_OTHER) << "~realtime_priority " << asked;
+    if (fifo) {
+      EXPECT_EQ(policy.second, 10);
+    }
+    {
+      std::lock_guard<std::mutex> lk(m);
+      EXPECT_EQ(said, expected) << "~realtime_priority " << asked;
+    }
+    spinner.stop();
+    sim.reset();
+    pnh.deleteParam("realtime_priority");
+  }
 }
 
 int main(int argc, char** argv) {

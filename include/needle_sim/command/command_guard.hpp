@@ -30,6 +30,7 @@
 
 #include "needle_sim/core/types.hpp"
 #include "needle_sim/needle/base_trajectory.hpp"
+#include "needle_sim/core/pi_mutex.hpp"
 
 namespace needle_sim {
 
@@ -241,7 +242,7 @@ class CommandGuard {
   // The limits' names in a message as the consumer writes them (`~` in the text: the prefix).
   std::string named(const std::string& text) const;
   std::string prefix_;
-  mutable std::mutex mutex_;  // limits_, last_stamp_, last_roll_, taken_, owners_
+  mutable PiMutex mutex_;  // limits_, last_stamp_, last_roll_, taken_, owners_
   CommandLimits limits_;
   std::vector<NeedleInfo> needles_;
   std::vector<double> last_stamp_;  // -inf: none yet

@@ -49,6 +49,7 @@
 #include "needle_sim/core/run_statistics.hpp"
 #include "needle_sim/sim/simulation.hpp"
 #include "needle_sim/sim/tip_speed.hpp"
+#include "needle_sim/core/pi_mutex.hpp"
 
 namespace needle_sim {
 
@@ -108,8 +109,8 @@ class SimulatorRos {
   };
   std::vector<HolderWrenchExtrapolation> wrench_models_;  // per needle (sim_mutex_); cleared by load()
   double wrench_period_ = 0;                              // 0: none between steps; set before threads start
-  std::mutex wrench_mutex_;                               // wrench_table_, wrench_stop_
-  std::condition_variable wrench_cv_;
+  PiMutex wrench_mutex_;                               // wrench_table_, wrench_stop_
+  std::condition_variable_any wrench_cv_;
   WrenchTable wrench_table_;
   bool wrench_stop_ = false;
   std::thread wrench_thread_;
@@ -134,7 +135,7 @@ class SimulatorRos {
   bool toTissue(const std::string& frame, const ros::Time& stamp, const std::string& source, Rigid& out);
   void admit(int needle, const PoseCommand& c, const std::string& source);  // c.source: who sent it
   void warnRule(GuardRule rule, const std::string& source, const std::string& why);
-  std::mutex warn_mutex_;
+  PiMutex warn_mutex_;
   std::array<ros::WallTime, kGuardRules> last_warning_;  // per rule (throttled to 1 Hz), warn_mutex_
   std::array<unsigned long, kGuardRules> suppressed_{};  // warnings held back since
   // --- services (services.cpp)
@@ -161,7 +162,7 @@ class SimulatorRos {
   // Measurements in, the online estimate out (node_assimilation.hpp); null without ~assimilation/keys.
   std::unique_ptr<NodeAssimilation> assimilation_;
 
-  std::mutex sim_mutex_;  // guards sim_ and everything the stepping thread changes
+  PiMutex sim_mutex_;  // guards sim_ and everything the stepping thread changes
   std::unique_ptr<Simulation> sim_;
   std::shared_ptr<const ObservableNames> names_;
   Observables obs_;
@@ -175,7 +176,14 @@ class SimulatorRos {
   double publish_ms_ = 0;
   std::deque<std::pair<ros::WallTime, double>> rtf_window_;  // (wall, sim time)
   ros::WallTime last_display_;
-  std::atomic<double> sim_time_now_{0.0};  // for commands in ~as_fast_as_possible mode
+  std::atomic<double> sim_time_now_{0.0};
+  std::atomic<int> realtime_priority_{0};
+  int steppingPriority() const;  // the SCHED_FIFO priority the stepping thread asks for (0: none)
+  // The automatic priority is left once the simulation is this far behind the clock [s]: a
+  // FIFO thread stepping back to back would hold a core (a scene too heavy for the machine,
+  // a sanitizer's build).
+  static constexpr double kFifoMaxLag = 1.0;
+  void leaveRealtimePriority(double behind);  // on the stepping thread  // the stepping thread's SCHED_FIFO priority (0: none)  // for commands in ~as_fast_as_possible mode
   uint64_t diag_rejected_ = 0, diag_limited_ = 0;  // at the last diagnostics
   // Steps whose constraint solve missed its tolerance (lifetime; ~reset keeps it), and the
   // count at the last diagnostics.
@@ -194,10 +202,10 @@ class SimulatorRos {
   unsigned long tip_warnings_suppressed_ = 0;
   double predict_max_dt_ = 0;  // ~predict_max_dt, resolved against the scene's dt
 
-  std::mutex queue_mutex_;  // schedule_, origin_, stop_
+  PiMutex queue_mutex_;  // schedule_, origin_, stop_
   RealtimeSchedule schedule_;
   ros::Time origin_;  // ROS time of step 0 (zero: not started)
-  std::condition_variable wake_;
+  std::condition_variable_any wake_;
   bool stop_ = false;
 
   std::unique_ptr<tf2_ros::Buffer> tf_buffer_;
@@ -212,7 +220,7 @@ class SimulatorRos {
   std::unique_ptr<diagnostic_updater::Updater> updater_;
   // The diagnostics timer's callback runs under this and not once the node goes (a stopped
   // timer's callback may still be under way on a spinner thread).
-  std::mutex diag_mutex_;
+  PiMutex diag_mutex_;
   bool diag_stopped_ = false;
   ros::ServiceServer reset_srv_, set_target_srv_, predict_srv_, steer_srv_;
   ros::CallbackQueue predict_queue_;  // predictions (~predict, ~steer) take their own thread
@@ -239,8 +247,8 @@ class SimulatorRos {
   PreflightResult preflight_;
   bool preflight_run_ = false;
   std::thread thread_;
-  std::mutex error_mutex_;  // error_job_, errors_latest_, errors_step_, error_busy_, error_stop_
-  std::condition_variable error_cv_;
+  PiMutex error_mutex_;  // error_job_, errors_latest_, errors_step_, error_busy_, error_stop_
+  std::condition_variable_any error_cv_;
   std::unique_ptr<Simulation> error_job_;
   std::vector<TargetError> errors_latest_;
   long errors_step_ = -1;

@@ -78,6 +78,8 @@ class AdaptationPasses {
 
   bool passPending() const { return pending_pass_ != nullptr; }
   bool rebuildPending() const { return pending_rebuild_ != nullptr; }
+  // A build or a pass still being computed (a copy would wait for it).
+  bool working() const;
   const AdaptationCounters& counters() const { return counters_; }
 
   // Tests: every background build and every background pass's decision takes at least this

@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "needle_sim/command/command_guard.hpp"
+#include "needle_sim/core/pi_mutex.hpp"
 
 namespace needle_sim {
 
@@ -85,7 +86,7 @@ class CommandPipeline {
   std::unique_ptr<CommandGuard> guard_;
   long limits_version_ = 0;  // of the limits the motion under way was last checked against
   bool enforce_on_motion_ = true;
-  std::mutex mutex_;         // the queues
+  PiMutex mutex_;         // the queues
   std::vector<std::pair<int, Admission>> commands_;
   std::vector<Plan> plans_;
   std::vector<int> holds_;

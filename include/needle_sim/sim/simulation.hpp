@@ -110,6 +110,12 @@ class Simulation {
   // Background work: a mesh change being built, a pass under way, and the counts so far.
   bool rebuildPending() const { return passes_ && passes_->rebuildPending(); }
   bool passPending() const { return passes_ && passes_->passPending(); }
+  // Background work still under way that a copy of this simulation would wait for (a factor
+  // refresh, a mesh change's build, a pass): a copy taken on the stepping thread of a live
+  // loop waits for none (the node's target-error estimates).
+  bool backgroundWorkRunning() const {
+    return (tissue_ && tissue().factorRefreshRunning()) || (passes_ && passes_->working());
+  }
   AdaptationCounters adaptationCounters() const { return passes_ ? passes_->counters() : AdaptationCounters{}; }
   // SPR estimate of the current state; computed on first use after each step (adaptive
   // runs compute it anyway and share it).

@@ -135,6 +135,8 @@ class SystemSolver {
   long factorVersion() const { return version_; }
   const LinearSolverSettings& settings() const { return settings_; }
   bool refreshPending() const { return pending_ != nullptr; }
+  // A background refresh still being computed (a copy of this solver would wait for it).
+  bool refreshRunning() const;
   // Background refreshes on or off from now (settings' `async` at construction). Static
   // Newton turns them off: its matrix changes much between iterations (contact sets, load
   // control), and a factor of an older iteration's matrix costs more CG than it saves.

@@ -114,6 +114,7 @@ class TissueBody {
   // No background factor refresh while on (SystemSolver::holdRefresh): this body is about to
   // be replaced by one being built.
   void holdFactorRefresh(bool on) { solver_->holdRefresh(on); }
+  bool factorRefreshRunning() const { return solver_->refreshRunning(); }
   void setState(const VecX& x, const VecX& v);
   // Adds nodal forces (3n) to the constant external loads (e.g. a manufactured body force).
   void addExternalForce(const VecX& f) { f_ext_ += f; }

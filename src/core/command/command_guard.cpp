@@ -124,18 +124,18 @@ CommandGuard::CommandGuard(const CommandLimits& limits, std::vector<NeedleInfo> 
 void CommandGuard::setLimits(const CommandLimits& limits) {
   limits.validate(prefix_);
   ceilings_.check(limits, prefix_);
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   limits_ = limits;
   ++limits_version_;
 }
 
 CommandLimits CommandGuard::limits() const {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   return limits_;
 }
 
 void CommandGuard::restart() {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   last_stamp_.assign(needles_.size(), -std::numeric_limits<double>::infinity());
   last_roll_.clear();
   for (const auto& n : needles_) last_roll_.push_back(n.rest.roll);
@@ -236,14 +236,14 @@ bool CommandGuard::ownerAllows(int n, const std::string& source, double now, std
 }
 
 bool CommandGuard::mayCommand(int n, const std::string& source, double now, std::string& why) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   if (ownerAllows(n, source, now, why)) return true;
   record(GuardRule::Owner);
   return false;
 }
 
 void CommandGuard::own(int n, const std::string& source, double now, double until) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   OwnerState& o = owners_[n];
   if (o.source != source) o = OwnerState{source, now, until, false};
   o.last = std::max(o.last, now);
@@ -251,7 +251,7 @@ void CommandGuard::own(int n, const std::string& source, double now, double unti
 }
 
 bool CommandGuard::hold(int n, const std::string& source, double now, std::string& why) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   if (!ownerAllows(n, source, now, why)) {
     record(GuardRule::Owner);
     return false;
@@ -261,17 +261,17 @@ bool CommandGuard::hold(int n, const std::string& source, double now, std::strin
 }
 
 void CommandGuard::release(int n, const std::string& source) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   if (owners_[n].source == source) owners_[n] = OwnerState{};
 }
 
 std::string CommandGuard::owner(int n) const {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   return owners_[n].source;
 }
 
 Admission CommandGuard::admit(int n, const PoseCommand& c, double now) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   // One source at a time: another's command is rejected before anything else is looked at;
   // the owner's own commands, taken or not, show it is not silent.
   if (!c.source.empty()) {
@@ -337,7 +337,7 @@ Following CommandGuard::follow(int n, BaseTrajectory& traj, const Admission& a, 
   const BasePose from = traj.pose(ts);
   Taken taken;
   {
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     Taken& k = taken_[n];
     if (!(k.step_now == now)) {
       k.before = k.last;
@@ -394,7 +394,7 @@ bool CommandGuard::enforce(int n, BaseTrajectory& traj, double now, bool inserte
 
 std::string CommandGuard::checkPlan(int n, const std::vector<PlanWaypoint>& w, const BasePose& from, double dt,
                                     bool inserted, PlanPoses& out) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   out.clear();
   auto refuse = [&](size_t k, const std::string& why) {
     record(GuardRule::Plan);
@@ -498,7 +498,7 @@ std::string CommandGuard::spinPlan(const std::vector<PlanWaypoint>& w, const Bas
 }
 
 void CommandGuard::planTaken(int n, const BasePose& last) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   last_roll_[n] = last.roll;
 }
 

@@ -98,6 +98,18 @@ AdaptationPasses::~AdaptationPasses() {
   settle(true);
 }
 
+namespace {
+template <class Future>
+bool running(const Future& f) {
+  return f.valid() && f.wait_for(std::chrono::seconds(0)) != std::future_status::ready;
+}
+}  // namespace
+
+bool AdaptationPasses::working() const {
+  return (pending_rebuild_ && running(pending_rebuild_->job)) ||
+         (pending_pass_ && (running(pending_pass_->decision) || running(pending_pass_->build)));
+}
+
 long AdaptationPasses::lagSteps(double delay, double dt) const {
   return delay > 0 ? std::max(1L, std::lround(delay / dt)) : 0;
 }

@@ -30,7 +30,7 @@ void CommandPipeline::restart(const Simulation& sim) {
   guard_->setLimits(withWorkspace(guard_->limits(), sim));
   guard_->restart();
   limits_version_ = guard_->limitsVersion();
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   commands_.clear();
   plans_.clear();
   holds_.clear();
@@ -41,19 +41,19 @@ bool CommandPipeline::inserted(const Simulation& sim, int needle) {
 }
 
 Admission CommandPipeline::submit(int needle, const PoseCommand& command, double now) {
-  std::lock_guard<std::mutex> lk(mutex_);  // (admission and queueing in arrival order)
+  std::lock_guard<PiMutex> lk(mutex_);  // (admission and queueing in arrival order)
   const Admission a = guard_->admit(needle, command, now);
   if (a.accepted) commands_.emplace_back(needle, a);
   return a;
 }
 
 void CommandPipeline::submitPlan(Plan plan) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   plans_.push_back(std::move(plan));
 }
 
 void CommandPipeline::hold(int needle) {
-  std::lock_guard<std::mutex> lk(mutex_);
+  std::lock_guard<PiMutex> lk(mutex_);
   holds_.push_back(needle);
 }
 
@@ -68,7 +68,7 @@ std::vector<CommandPipeline::Event> CommandPipeline::beforeStep(Simulation& sim)
   std::vector<Plan> plans;
   std::vector<int> holds;
   {
-    std::lock_guard<std::mutex> lk(mutex_);
+    std::lock_guard<PiMutex> lk(mutex_);
     cmds.swap(commands_);
     plans.swap(plans_);
     holds.swap(holds_);

@@ -63,6 +63,11 @@ SystemSolver::SystemSolver(const SystemSolver& o, const CorotationalHexModel& mo
 
 SystemSolver::~SystemSolver() { dropRefresh(); }
 
+bool SystemSolver::refreshRunning() const {
+  return pending_ && pending_->done.valid() &&
+         pending_->done.wait_for(std::chrono::seconds(0)) != std::future_status::ready;
+}
+
 void SystemSolver::dropRefresh() {
   if (pending_ && pending_->done.valid()) pending_->done.wait();  // the thread reads the model
   pending_.reset();
