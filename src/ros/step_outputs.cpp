@@ -125,9 +125,10 @@ void SimulatorRos::wrenchLoop() {
   // thread at SCHED_FIFO, the stream is real-time output too: just below it. (Idle, it held
   // the step's hand-over, whose condition variable's own mutex has no priority inheritance,
   // for milliseconds while any other thread ran.)
+  const int stepping = steppingPriority();
   sched_param sp{};
-  sp.sched_priority = std::max(1, steppingPriority() - 1);
-  if (steppingPriority() == 0 || pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp) != 0) idleThisThread();
+  sp.sched_priority = std::max(1, stepping - 1);
+  if (stepping == 0 || pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp) != 0) idleThisThread();
   using clock = std::chrono::steady_clock;
   const auto period = std::chrono::duration_cast<clock::duration>(std::chrono::duration<double>(wrench_period_));
   auto next = clock::now() + period;
