@@ -43,7 +43,7 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   scene_ = loadScene(P.scene_file, P.overrides);
   for (const std::string& w : sceneWarnings(scene_)) ROS_WARN_STREAM("needle_sim: " << w);
   // A real-time loop takes a refreshed factor as soon as it is ready: no step waits for it
-  // (doc/ros_api.md, ~deterministic_factor; the results then vary within the CG tolerance).
+  // (doc/ros_api.md, ~deterministic_factor; the results then vary with the threads' timing: benchmarks.md, reproducibility).
   if (!P.deterministic_factor) scene_.solver.linear.async_lag = 0;
   const std::vector<NeedleScene> scene_needles = scene_.needles;  // with their motion (pre-flight)
   if (P.command_source != "scene")

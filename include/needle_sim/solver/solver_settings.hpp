@@ -49,7 +49,7 @@ struct SolverSettings {
             .flag("linear.async", [](SolverSettings& s) -> bool& { return s.linear.async; },
                   "pcg: refresh the factor on a background thread while the steps go on with the old one ([method.md](method.md#time-integration)); false: on the stepping thread")
             .integer("linear.async_lag", [](SolverSettings& s) -> int& { return s.linear.async_lag; },
-                     Range::closed(0, 1000000), "swap a background factor in this many solves after the request, waiting if it is late (deterministic); 0: as soon as it is ready (never waits; results vary within the CG tolerance)");
+                     Range::closed(0, 1000000), "swap a background factor in this many solves after the request, waiting if it is late (deterministic); 0: as soon as it is ready (never waits; the results then vary with the threads' timing: negligibly on dbs_adaptive, by millimetres on dbs_coarse, whose shaft grip releases in a stick-slip ([benchmarks.md](benchmarks.md#deep-brain-stimulation), reproducibility))");
     return p;
   }
 };

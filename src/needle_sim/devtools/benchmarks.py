@@ -631,6 +631,9 @@ BENCHMARKS = [
      "dbs_sensitivity; the 4 mm reference runs are reused when present, about 2 h when not)", 150, True,
      study("dbs_study.py", ["--out", "results/dbs_study", "--reuse", "--reference", "--sensitivity", "--jobs", "2"],
            150)),
+    ("dbs_reproducibility", "the DBS prediction with only the CG tolerance and the factor's swap lag changed, two "
+     "scenes (writes its block)", 8, True, study("reproducibility_study.py", ["--out", "results/reproducibility",
+                                                                             "--jobs", "2"], 8)),
     ("assimilation", "twin experiments of run --assimilate: the phantom over 10 seeds and a DBS scene (writes its "
      "block)", 35, True, study("assimilation_study.py", ["--out", "results/assimilation_study", "--dbs"], 35)),
     ("ci", ".ci/run on a clean clone: the phase times", 60, True, ci),
