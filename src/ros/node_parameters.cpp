@@ -66,6 +66,9 @@ NodeParameters readParameters(const ros::NodeHandle& pnh) {
   p.scene_file = resolveScenePath(p.scene_file, ros::package::getPath("needle_sim"));
   readOverrides(pnh, p.overrides);
   pnh.param("deterministic_factor", p.deterministic_factor, p.deterministic_factor);
+  pnh.param("rotation_drift", p.rotation_drift, p.rotation_drift);
+  if (!(p.rotation_drift <= 0.5))
+    throw InputError("", "~rotation_drift", "must be at most 0.5 rad (0: the rotations of every step; < 0: automatic)");
   pnh.param("tissue_frame", p.tissue_frame, p.tissue_frame);
   if (p.tissue_frame.empty()) throw InputError("", "~tissue_frame", "must not be empty");
   pnh.param("parent_frame", p.parent_frame, p.parent_frame);

@@ -13,12 +13,20 @@
 
 namespace needle_sim {
 
+// ~rotation_drift's automatic choice: lagged rotations of this angle [rad] for tissue whose
+// Poisson ratio is at least kNearlyIncompressible (bulk modulus 50 times the shear's and more).
+constexpr double kLiveRotationDrift = 0.01;
+constexpr double kNearlyIncompressible = 0.49;
+
 struct NodeParameters {
   std::string scene_file;
   std::vector<std::string> overrides;  // ~set: key.path=value, as `needle_sim run --set`
   // ~deterministic_factor: false (default) swaps a background factor refresh in as soon as it
   // is ready (solver.linear.async_lag 0: no step waits for it); true keeps the scene's lag.
   bool deterministic_factor = false;
+  // ~rotation_drift [rad]: the scene's solver.linear.rotation_drift in the node; < 0 (default):
+  // the scene's if it sets one, else kLiveRotationDrift for nearly incompressible tissue.
+  double rotation_drift = -1;
   std::string tissue_frame = "tissue";
   std::string parent_frame;             // "": the tissue frame is a root of the tf tree
   std::array<double, 7> tissue_pose{{0, 0, 0, 0, 0, 0, 1}};  // parent -> tissue: x y z qx qy qz qw

@@ -45,6 +45,13 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   // A real-time loop takes a refreshed factor as soon as it is ready: no step waits for it
   // (doc/ros_api.md, ~deterministic_factor; the results then vary with the threads' timing: benchmarks.md, reproducibility).
   if (!P.deterministic_factor) scene_.solver.linear.async_lag = 0;
+  // Lagged rotations where a stale factor costs most (doc/ros_api.md, ~rotation_drift): the
+  // brain (Poisson 0.4977, bulk modulus 220 times the shear's) took 4-18 CG iterations a step,
+  // and 206 of 1,800 paced steps over dt, against 4 with them; the phantom (0.4) and the gel
+  // (0.475) converge in 1-3 anyway and would only pay the refreshes.
+  if (P.rotation_drift >= 0) scene_.solver.linear.rotation_drift = P.rotation_drift;
+  else if (scene_.solver.linear.rotation_drift == 0 && scene_.tissue.material.poisson >= kNearlyIncompressible)
+    scene_.solver.linear.rotation_drift = kLiveRotationDrift;
   const std::vector<NeedleScene> scene_needles = scene_.needles;  // with their motion (pre-flight)
   if (P.command_source != "scene")
     for (auto& n : scene_.needles) n.motion.clear();  // the base follows the commands only

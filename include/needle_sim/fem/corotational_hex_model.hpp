@@ -63,6 +63,10 @@ class CorotationalHexModel {
   // Extracts every element's rotation from the current positions x (3n).
   void updateRotations(const VecX& x);
   const Mat3& rotation(int e) const { return rot_[e]; }
+  const std::vector<Mat3>& rotations() const { return rot_; }
+  // Sets the rotations the forces and the stiffness take (lagged rotations: those of the factor
+  // in use, SystemSolver::factorRotations); the extraction's warm start stays as it was.
+  void setRotations(const std::vector<Mat3>& r) { rot_ = r; }
   // Rotation of element e for positions x, without changing the model (warm-started from
   // the stored one): for outputs computed after a step (stresses, error estimates).
   Mat3 computeRotation(int e, const VecX& x) const;

@@ -51,6 +51,7 @@ struct LinearSolverSettings {
   Ordering ordering = Ordering::Auto;
   bool async = true;           // refresh the factor on a background thread
   int async_lag = 4;           // swap it in this many calls after the request (0: when ready)
+  double rotation_drift = 0;   // lagged rotations (TissueBody::freeMotion): refresh past this angle [rad]; 0: off
 };
 
 // Extra symmetric stiffness given per element as 24x24 blocks over the element's nodes
@@ -149,6 +150,25 @@ class SystemSolver {
   // converge still refactors): a body about to be replaced by a deferred mesh change leaves
   // the second core to the new body's build.
   void holdRefresh(bool on) { hold_ = on; }
+  // Lagged rotations (settings' rotation_drift; TissueBody::freeMotion, doc/method.md "Time
+  // integration"): the caller gives the model the factor's rotations before each step, so that
+  // the step's matrix is the factor's own. The element rotations the factor in use was made
+  // with (empty before the first):
+  const std::vector<Mat3>& factorRotations() const { return factor_rot_; }
+  // From now on: a refresh captures *current (the rotations of the positions, which the model
+  // no longer holds) instead of the model's, and only takeDueRefresh() swaps one in (solve()
+  // does not, so that a step's rotations and factor belong together). nullptr: as before.
+  void setLaggedRotations(const std::vector<Mat3>* current) {
+    capture_ = current;
+    swap_in_solve_ = current == nullptr;
+  }
+  // Swaps in a pending refresh that is due at the next solve() (as that call would), before
+  // the step takes the factor's rotations; true if it did (the columns are then to be taken).
+  bool takeDueRefresh(LinearSolveStats& st) { return swapDueRefresh(st, 1); }
+  // Refresh at the next solve() (unless one is pending): the rotations drifted too far.
+  void requestRefresh() {
+    if (!pending_) stale_ = true;
+  }
   // Tests: every background refresh takes at least this long (a factor that finishes late).
   static void setRefreshDelayForTesting(double ms);
 
@@ -179,6 +199,8 @@ class SystemSolver {
   // cost less than a factorisation; asynchronous: max_iterations).
   int staleBudget() const;
   void dropRefresh();
+  // Swaps in a pending refresh due at the call `ahead` calls from now (0: this one).
+  bool swapDueRefresh(LinearSolveStats& st, long ahead);
 
   const CorotationalHexModel& model_;
   const DofMap& dofs_;
@@ -202,6 +224,9 @@ class SystemSolver {
   mutable VecX full_in_, full_out_;
   const ElementBlocks* extra_ = nullptr;
   const OperatorTerm* nonsymmetric_ = nullptr;
+  std::vector<Mat3> factor_rot_;                 // the rotations of the factor in use
+  bool swap_in_solve_ = true;                    // false with lagged rotations
+  const std::vector<Mat3>* capture_ = nullptr;  // lagged rotations: what a refresh captures
 };
 
 }  // namespace needle_sim

@@ -130,6 +130,8 @@ class TissueBody {
 
  private:
   void accumulate(StepStats& s, const LinearSolveStats& l) const;
+  // After a background refresh was swapped in: the compliance columns it computed.
+  void adoptRefreshColumns();
   // f -= c K_s y (the support springs).
   void addSupportProduct(const VecX& y, double c, VecX& f) const;
   const ElementBlocks* supportOrNull() const { return support_.element.empty() ? nullptr : &support_; }
@@ -139,6 +141,7 @@ class TissueBody {
   SolverSettings settings_;
   DofMap dofs_;
   std::unique_ptr<SystemSolver> solver_;
+  std::vector<Mat3> rotations_now_;  // lagged rotations: those of the positions (a refresh's)
   VecX rest_, x_, v_, f_ext_, mass_, mass_free_;
   VecX scene_f_ext_;
   VecX dv_free_;     // this step's increment (free motion, then the constraint correction)

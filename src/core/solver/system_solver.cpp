@@ -44,7 +44,9 @@ SystemSolver::SystemSolver(const SystemSolver& o, const CorotationalHexModel& mo
       async_(o.async_),
       hold_(o.hold_),
       calls_(o.calls_),
-      calls_since_factor_(o.calls_since_factor_) {
+      calls_since_factor_(o.calls_since_factor_),
+      factor_rot_(o.factor_rot_),
+      swap_in_solve_(o.swap_in_solve_) {  // capture_: the copy's owner points it at its own
   if (o.pending_) {
     // The copy steps as the original will: it gets the same refresh, finished (so its own
     // swap, at the same call, needs no thread).
@@ -54,6 +56,7 @@ SystemSolver::SystemSolver(const SystemSolver& o, const CorotationalHexModel& mo
     pending_->requested_call = o.pending_->requested_call;
     pending_->column_dofs = o.pending_->column_dofs;
     pending_->columns = o.pending_->columns;
+    pending_->rotations = o.pending_->rotations;
     pending_->work_ms = o.pending_->work_ms;
     std::promise<bool> p;
     p.set_value(ok);
@@ -102,8 +105,12 @@ void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, Linea
   auto t0 = steadyNow();
   assembler_.setZero();
   hex8::Mat24 Ke;
+  // Lagged rotations: the factor of the positions' rotations, which the model takes from the
+  // next step on (this one's matrix has the model's: CG makes up the difference once).
+  const bool captured = capture_ && capture_->size() == static_cast<size_t>(model_.numElements());
   for (int e = 0; e < model_.numElements(); ++e) {
-    model_.elementStiffness(e, Ke);
+    if (captured) model_.elementStiffness(e, (*capture_)[static_cast<size_t>(e)], Ke);
+    else model_.elementStiffness(e, Ke);
     assembler_.addElement(e, Ke.data(), c_k);
   }
   if (extra_)
@@ -116,6 +123,7 @@ void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, Linea
   st.factor_ms += msSince(t0);
   st.refactored = true;
   ++version_;
+  factor_rot_ = captured ? *capture_ : model_.rotations();
   dual_factor_ = false;
   if (!ok)
     throw NumericalError(-1, "system matrix is not positive definite (are rigid motions "
@@ -132,7 +140,8 @@ void SystemSolver::startRefresh(const VecX& mass_free, double c_m, double c_k, L
   // assembler's scatter map, which do not change while this solver lives.
   std::unique_ptr<Refresh> r = spare_ ? std::move(spare_) : std::make_unique<Refresh>();
   r->rotations.resize(model_.numElements());
-  for (int e = 0; e < model_.numElements(); ++e) r->rotations[e] = model_.rotation(e);
+  const bool captured = capture_ && capture_->size() == static_cast<size_t>(model_.numElements());
+  for (int e = 0; e < model_.numElements(); ++e) r->rotations[e] = captured ? (*capture_)[e] : model_.rotation(e);
   r->mass_free = mass_free;
   r->c_m = c_m;
   r->c_k = c_k;
@@ -194,6 +203,7 @@ bool SystemSolver::finishRefresh(LinearSolveStats& st) {
   const bool ok = r.done.get();
   if (ok) {
     std::swap(chol_, r.factor);  // the old factor's buffers serve the next refresh
+    factor_rot_ = r.rotations;
     ++version_;
     dual_factor_ = false;
     columns_version_ = r.columns.size() > 0 ? version_ : -1;
@@ -205,19 +215,23 @@ bool SystemSolver::finishRefresh(LinearSolveStats& st) {
   return ok;
 }
 
+bool SystemSolver::swapDueRefresh(LinearSolveStats& st, long ahead) {
+  if (!pending_) return false;
+  // Swapped in at a fixed number of calls after the request (the same results whatever the
+  // thread's timing), or as soon as it is ready with async_lag 0.
+  const bool due = settings_.async_lag > 0
+                       ? calls_ + ahead - pending_->requested_call >= settings_.async_lag
+                       : pending_->done.wait_for(std::chrono::seconds(0)) == std::future_status::ready;
+  if (due && !finishRefresh(st)) stale_ = true;
+  return st.async_swapped;
+}
+
 LinearSolveStats SystemSolver::solve(const VecX& mass_free, double c_m, double c_k, const VecX& b, VecX& x,
                                      double tolerance, const std::function<std::vector<int>()>& column_dofs) {
   LinearSolveStats st;
   ++calls_;
   const bool direct = settings_.method == LinearSolverSettings::Method::Direct;
-  if (pending_) {
-    // Swapped in at a fixed number of calls after the request (the same results whatever the
-    // thread's timing), or as soon as it is ready with async_lag 0.
-    const bool due = settings_.async_lag > 0
-                         ? calls_ - pending_->requested_call >= settings_.async_lag
-                         : pending_->done.wait_for(std::chrono::seconds(0)) == std::future_status::ready;
-    if (due && !finishRefresh(st)) stale_ = true;
-  }
+  if (swap_in_solve_) swapDueRefresh(st, 0);
   if (direct || must_refactor_ || !chol_->factored() ||
       (settings_.refactor_every > 0 && calls_since_factor_ >= settings_.refactor_every)) {
     refactor(mass_free, c_m, c_k, st);

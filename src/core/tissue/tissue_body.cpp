@@ -120,7 +120,27 @@ StepStats TissueBody::freeMotion(double h) {
   step_h_ = h;
   const auto t0 = steadyNow();
   const double alpha = settings_.rayleigh_mass, beta = settings_.rayleigh_stiffness;
+  // Lagged rotations (doc/method.md "Time integration"): the step's stiffness and forces take
+  // the factor's rotations, so that its matrix is the factor's own (one CG iteration); the
+  // rotations of the positions only decide when to refresh, and are what a refresh is made of.
+  const double drift_limit = settings_.linear.rotation_drift;
+  const bool lagged = drift_limit > 0 && settings_.linear.method == LinearSolverSettings::Method::Pcg;
+  LinearSolveStats swapped;
+  if (lagged) {
+    solver_->setLaggedRotations(&rotations_now_);
+    if (solver_->takeDueRefresh(swapped)) adoptRefreshColumns();
+  }
   model_->updateRotations(x_);
+  if (lagged && solver_->factorRotations().size() == model_->rotations().size()) {
+    rotations_now_ = model_->rotations();
+    const std::vector<Mat3>& held = solver_->factorRotations();
+    // ||R - R0||_F = 2 sqrt(2) sin(angle / 2): compared without the arcsine.
+    const double limit = 2.0 * std::sqrt(2.0) * std::sin(0.5 * drift_limit);
+    double drift = 0;
+    for (size_t e = 0; e < held.size(); ++e) drift = std::max(drift, (rotations_now_[e] - held[e]).norm());
+    model_->setRotations(held);
+    if (drift > limit) solver_->requestRefresh();
+  }
   VecX f = f_ext_;
   model_->addInternalForce(x_, f);
   // f - h K v - C v = f - (h + beta) K v - alpha M v
@@ -147,16 +167,19 @@ StepStats TissueBody::freeMotion(double h) {
   // 8 solves, 2.4 ms a step, for ten steps after each swap).
   const auto l = solver_->solve(mass_free_, 1 + h * alpha, h * beta + h * h, b, dv_free_, 0,
                                 [this] { return columns_.dofs(); });
-  if (l.async_swapped) {
-    std::vector<int> dofs;
-    Eigen::MatrixXd X;
-    long version = 0;
-    if (solver_->takeRefreshColumns(dofs, X, version)) columns_.adopt(dofs, X, version);
-  }
+  if (l.async_swapped) adoptRefreshColumns();
   free_guess2_ = free_guess_;
   free_guess_ = dv_free_;
   accumulate(st, l);
+  accumulate(st, swapped);
   return st;
+}
+
+void TissueBody::adoptRefreshColumns() {
+  std::vector<int> dofs;
+  Eigen::MatrixXd X;
+  long version = 0;
+  if (solver_->takeRefreshColumns(dofs, X, version)) columns_.adopt(dofs, X, version);
 }
 
 bool TissueBody::solveDual(const Eigen::MatrixXd& G, Eigen::MatrixXd& Z, int& iterations, int max_iterations) const {
