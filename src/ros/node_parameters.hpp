@@ -13,11 +13,6 @@
 
 namespace needle_sim {
 
-// ~rotation_drift's automatic choice: lagged rotations of this angle [rad] for tissue whose
-// Poisson ratio is at least kNearlyIncompressible (bulk modulus 50 times the shear's and more).
-constexpr double kLiveRotationDrift = 0.01;
-constexpr double kNearlyIncompressible = 0.49;
-
 struct NodeParameters {
   std::string scene_file;
   std::vector<std::string> overrides;  // ~set: key.path=value, as `needle_sim run --set`
@@ -25,7 +20,8 @@ struct NodeParameters {
   // is ready (solver.linear.async_lag 0: no step waits for it); true keeps the scene's lag.
   bool deterministic_factor = false;
   // ~rotation_drift [rad]: the scene's solver.linear.rotation_drift in the node; < 0 (default):
-  // the scene's if it sets one, else kLiveRotationDrift for nearly incompressible tissue.
+  // the scene's if it sets one, else kLiveRotationDrift for nearly incompressible tissue
+  // (sim/live_loop.hpp).
   double rotation_drift = -1;
   std::string tissue_frame = "tissue";
   std::string parent_frame;             // "": the tissue frame is a root of the tf tree

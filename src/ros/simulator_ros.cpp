@@ -28,6 +28,7 @@
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/scene/scene_check.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/live_loop.hpp"
 #include "node_parameters.hpp"
 #include "output_queue.hpp"
 
@@ -42,16 +43,10 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   Simulation::setSetupThreads(threadsOrEveryCore(P.setup_threads));
   scene_ = loadScene(P.scene_file, P.overrides);
   for (const std::string& w : sceneWarnings(scene_)) ROS_WARN_STREAM("needle_sim: " << w);
-  // A real-time loop takes a refreshed factor as soon as it is ready: no step waits for it
-  // (doc/ros_api.md, ~deterministic_factor; the results then vary with the threads' timing: benchmarks.md, reproducibility).
-  if (!P.deterministic_factor) scene_.solver.linear.async_lag = 0;
-  // Lagged rotations where a stale factor costs most (doc/ros_api.md, ~rotation_drift): the
-  // brain (Poisson 0.4977, bulk modulus 220 times the shear's) took 4-18 CG iterations a step,
-  // and 206 of 1,800 paced steps over dt, against 4 with them; the phantom (0.4) and the gel
-  // (0.475) converge in 1-3 anyway and would only pay the refreshes.
-  if (P.rotation_drift >= 0) scene_.solver.linear.rotation_drift = P.rotation_drift;
-  else if (scene_.solver.linear.rotation_drift == 0 && scene_.tissue.material.poisson >= kNearlyIncompressible)
-    scene_.solver.linear.rotation_drift = kLiveRotationDrift;
+  // A real-time loop: a refreshed factor taken as soon as it is ready, lagged rotations for
+  // nearly incompressible tissue (sim/live_loop.hpp; doc/ros_api.md, ~deterministic_factor and
+  // ~rotation_drift).
+  applyLiveLoop(scene_, {P.deterministic_factor, P.rotation_drift});
   const std::vector<NeedleScene> scene_needles = scene_.needles;  // with their motion (pre-flight)
   if (P.command_source != "scene")
     for (auto& n : scene_.needles) n.motion.clear();  // the base follows the commands only

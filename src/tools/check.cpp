@@ -16,6 +16,7 @@
 #include "needle_sim/scene/scene_check.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
 #include "needle_sim/scene/scene_overrides.hpp"
+#include "needle_sim/sim/live_loop.hpp"
 #include "needle_sim/sim/preflight.hpp"
 #include "needle_sim/sim/simulation.hpp"
 #include "exit_codes.hpp"
@@ -170,8 +171,10 @@ int checkCommand(const CheckOptions& o) {
                                              std::to_string(o.aims.size()));
     for (double v : o.aims)
       if (!std::isfinite(v)) throw InputError(o.scene, "--aim", "expected finite numbers");
-    const Scene scene = loadScene(o.scene, o.sets);
+    Scene scene = loadScene(o.scene, o.sets);
     for (const std::string& w : sceneWarnings(scene)) std::cerr << "needle_sim: warning: " << w << '\n';
+    // The pre-flight times the node's loop (sim/live_loop.hpp): what it states is the node's.
+    applyLiveLoop(scene);
     Simulation sim(scene);
     const bool machine = o.json || !o.aims.empty();
     const double budget = o.preflight >= 0 ? o.preflight : (machine ? 0.0 : 2.0);
