@@ -26,6 +26,7 @@
 #include "needle_sim/core/blas_threads.hpp"
 #include "needle_sim/core/denormals.hpp"
 #include "needle_sim/scene/scene_loader.hpp"
+#include "needle_sim/sim/live_loop.hpp"
 #include "needle_sim/sim/observables.hpp"
 #include "needle_sim/sim/simulation.hpp"
 #include "sim_clock.hpp"
@@ -43,6 +44,7 @@ struct NodeRun {
   std::string ns;
   std::string scene_file;
   std::vector<std::string> overrides;
+  double rotation_drift = -1;  // the node's ~rotation_drift
   std::mutex m;
   std::vector<needle_sim::SimStatus> statuses;
   std::vector<std::vector<Vec3>> wrenches;  // per needle, in order
@@ -64,6 +66,7 @@ void subscribe(ros::NodeHandle& nh, NodeRun& run, const std::vector<std::string>
   ros::NodeHandle p(nh, run.ns);
   ASSERT_TRUE(p.getParam("scene", run.scene_file)) << run.ns;
   p.getParam("set", run.overrides);
+  p.getParam("rotation_drift", run.rotation_drift);
   run.subs.push_back(p.subscribe<needle_sim::SimStatus>("status", 10000, [&run](const needle_sim::SimStatus::ConstPtr& s) {
     std::lock_guard<std::mutex> lk(run.m);
     run.statuses.push_back(*s);
@@ -100,6 +103,8 @@ void compareWithCore(NodeRun& run, Each each) {
   needle_sim::flushDenormalsToZero();  // as the node's stepping thread
   needle_sim::setBlasThreads(1);        // as the node (~blas_threads)
   needle_sim::Scene scene = needle_sim::loadScene(run.scene_file, run.overrides);
+  // As the node runs it (~deterministic_factor true): dbs_coarse with lagged rotations.
+  needle_sim::applyLiveLoop(scene, {true, run.rotation_drift});
   needle_sim::Simulation::Options o;
   o.target_errors = !scene.targets.empty();
   needle_sim::Simulation sim(scene, o);
