@@ -47,6 +47,10 @@ SimulatorRos::SimulatorRos(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), p
   // nearly incompressible tissue (sim/live_loop.hpp; doc/ros_api.md, ~deterministic_factor and
   // ~rotation_drift).
   applyLiveLoop(scene_, {P.deterministic_factor, P.rotation_drift});
+  if (scene_.solver.linear.rotation_drift > 0)
+    ROS_INFO("needle_sim: lagged rotations, refreshed past %g rad (~rotation_drift; the CLI runs the scene with "
+             "the rotations of every step)",
+             scene_.solver.linear.rotation_drift);
   const std::vector<NeedleScene> scene_needles = scene_.needles;  // with their motion (pre-flight)
   if (P.command_source != "scene")
     for (auto& n : scene_.needles) n.motion.clear();  // the base follows the commands only
