@@ -157,7 +157,7 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
     throw InputError(o.scene, "--target-error-every", "the scene has no target (add one with --target X Y Z)");
   const long steps = o.steps > 0 ? o.steps : scene.numSteps();
   RunStatistics total(1e3 * sim.dt());  // step times against the deadline dt
-  std::vector<double> est, mark, rebuild, pass_share, goal, copy_ms, dual_it;
+  std::vector<double> est, mark, rebuild, pass_share, goal, copy_ms;
   struct Slow {
     double ms;
     long step;
@@ -191,9 +191,8 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
         copy_ms.push_back(msSince(c0));
       }
       const auto g0 = steadyNow();
-      const auto& errs = sim.targetErrors();
+      sim.targetErrors();
       const double gms = msSince(g0);
-      for (const auto& e : errs) dual_it.push_back(e.dual_iterations);
       goal.push_back(gms);
       sum_goal += gms;
     }
@@ -211,8 +210,7 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
   }
   const double wall = std::chrono::duration<double>(steadyNow() - w0).count();
   const Percentiles pt = total.percentiles(), pd = percentiles(dofs), pe = percentiles(est), pm = percentiles(mark),
-                    pr = percentiles(rebuild), pg = percentiles(goal), pc = percentiles(copy_ms),
-                    pi = percentiles(dual_it);
+                    pr = percentiles(rebuild), pg = percentiles(goal), pc = percentiles(copy_ms);
   const long misses = total.misses(), longest = total.longestMissRun();
   const AdaptationCounters ac = sim.adaptationCounters();
   std::printf("needle_sim bench: %s, %ld of the scene's %ld steps%s%s (times in ms)\n", o.scene.c_str(), steps,
@@ -245,9 +243,8 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
   }
   if (!goal.empty())
     std::printf("goal-oriented target estimate: %zu passes (every %d steps), median %.3f ms, max %.3f ms, %.1f %% of the "
-                "run (steps + estimates); dual CG iterations median %.0f, max %.0f\n",
-                goal.size(), o.target_error_every, pg.median, pg.max, 100 * sum_goal / std::max(sum_total + sum_goal, 1e-300),
-                pi.median, pi.max);
+                "run (steps + estimates)\n",
+                goal.size(), o.target_error_every, pg.median, pg.max, 100 * sum_goal / std::max(sum_total + sum_goal, 1e-300));
   if (!copy_ms.empty())
     std::printf("copy of the simulation for it (the node's stepping thread): median %.3f ms, max %.3f ms\n", pc.median,
                 pc.max);
@@ -267,8 +264,7 @@ int benchAdaptive(const BenchOptions& o, const Scene& scene) {
                         {"passes_after_decision", ac.passes_after_decision},
                         {"target_error_ms", {{"passes", goal.size()}, {"median", pg.median}, {"max", pg.max},
                                              {"share", sum_goal / std::max(sum_total + sum_goal, 1e-300)},
-                                             {"copy_median", pc.median}, {"copy_max", pc.max},
-                                             {"dual_iterations_median", pi.median}, {"dual_iterations_max", pi.max}}},
+                                             {"copy_median", pc.median}, {"copy_max", pc.max}}},
                         {"passes", passes},
                         {"mesh_changes", changes},
                         {"estimate_ms_median", pe.median},

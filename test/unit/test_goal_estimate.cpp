@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <map>
 
 #include "fixtures.hpp"
 #include "needle_sim/core/error.hpp"
@@ -180,4 +181,60 @@ TEST(GoalEstimate, EstimatesLeaveTheSimulationUnchanged) {
   std::printf("%d mesh changes, %d estimates, largest probe displacement %.3e m\n", changes, estimates, largest);
   EXPECT_GT(changes, 0);
   EXPECT_GT(largest, 1e-8);
+}
+
+// Goal-oriented passes in the background (adaptivity.estimate_delay with estimator: goal;
+// GoalPass): the target's duals are solved with the body's second stiffness factor on the
+// pass's thread, from copies made at the pass's step. Each estimate taken up with a decision
+// is, bit for bit, the one a pass on the stepping thread makes at that step (as long as both
+// runs are the same: a pass due at a new shaft point starts after a pending decision, by
+// design: their estimates are left out); the run is the same bit for bit however late the
+// thread is.
+TEST(GoalEstimate, BackgroundGoalPassesEstimateAsPassesOnTheSteppingThread) {
+  struct Trace {
+    std::vector<VecX> x;
+    std::map<long, TargetError> estimates;  // by the step they are of
+    long passes = 0, waits = 0;
+  };
+  auto run = [](const std::string& estimate_delay, double late_ms) {
+    Simulation::setRebuildDelayForTesting(late_ms);
+    Simulation sim(loadScene(sourcePath("config/scenes/phantom_insertion_adaptive.yaml"),
+                             {"time.duration=0.9", "targets=[{name: t, point: [0.022, 0.01, 0.01], radius: 0.0005}]",
+                              "adaptivity.estimator=goal", "adaptivity.goal={targets: [t], tolerance: 1.0e-7}",
+                              "adaptivity.rebuild_delay=0.007", "adaptivity.estimate_delay=" + estimate_delay}));
+    Trace tr;
+    for (long k = 0; k < sim.scene().numSteps(); ++k) {
+      sim.step();
+      tr.x.push_back(sim.tissue().positions());
+      const auto* e = sim.lastTargetErrors();
+      if (e && !e->empty()) tr.estimates[sim.lastTargetErrorStep()] = (*e)[0];
+    }
+    tr.passes = sim.adaptationCounters().background_passes;
+    tr.waits = sim.adaptationCounters().pass_waits;
+    Simulation::setRebuildDelayForTesting(0);
+    return tr;
+  };
+  const Trace here = run("0", 0), background = run("0.005", 0), late = run("0.005", 15);
+  EXPECT_EQ(here.passes, 0);
+  ASSERT_GT(background.passes, 20);
+  EXPECT_GT(late.waits, 0) << "15 ms late passes must have been waited for";
+  ASSERT_EQ(late.x.size(), background.x.size());
+  for (size_t k = 0; k < background.x.size(); ++k)
+    ASSERT_EQ((late.x[k] - background.x[k]).lpNorm<Eigen::Infinity>(), 0.0) << "step " << k + 1;
+  // Where the runs are the same, the estimates are.
+  size_t same = 0;
+  while (same < here.x.size() && (here.x[same] - background.x[same]).lpNorm<Eigen::Infinity>() == 0.0) ++same;
+  int compared = 0;
+  for (const auto& [step, e] : background.estimates) {
+    if (step > static_cast<long>(same)) break;
+    const auto it = here.estimates.find(step);
+    if (it == here.estimates.end()) continue;  // a pass started after a pending decision (a shaft point's)
+    ASSERT_TRUE(e.valid && it->second.valid) << step;
+    EXPECT_EQ(e.bound, it->second.bound) << "step " << step;
+    EXPECT_EQ((e.estimate - it->second.estimate).norm(), 0.0) << "step " << step;
+    EXPECT_EQ((e.qoi - it->second.qoi).norm(), 0.0) << "step " << step;
+    compared += e.bound > 0 ? 1 : 0;
+  }
+  std::printf("runs the same over %zu of %zu steps; %d nonzero estimates compared\n", same, here.x.size(), compared);
+  EXPECT_GE(compared, 5);
 }

@@ -26,8 +26,9 @@ struct AdaptivitySettings {
   // boundary (0: at once, on the stepping thread). Doc: method.md, "Refinement and
   // coarsening", deferred mesh changes.
   double rebuild_delay = 0;
-  // Dynamic steps with the spr estimator: the pass itself (estimate, marking, the new forest)
-  // runs on a background thread from a copy of the pass's state, and its decision is taken up
+  // Dynamic steps: the pass itself (estimate, with the goal estimator its targets' duals too,
+  // marking, the new forest) runs on a background thread from a copy of the pass's state, and
+  // its decision is taken up
   // this long after the pass [s, whole steps, at least one; at most rebuild_delay] or sooner,
   // waiting for it, when another pass falls due (0: on the stepping thread). The results are
   // those of a pass on the stepping thread. Doc: method.md, "Refinement and coarsening".
@@ -66,7 +67,7 @@ struct AdaptivitySettings {
             .real("rebuild_delay", [](S& s) -> double& { return s.rebuild_delay; }, "s", Range::closed(0, 10),
                   "dynamic steps: build a changed mesh's body in the background and move to it this long after the decision (whole steps of the dt in use, at least one); 0: at once, on the stepping thread ([method.md](method.md#refinement-and-coarsening))")
             .real("estimate_delay", [](S& s) -> double& { return s.estimate_delay; }, "s", Range::closed(0, 10),
-                  "dynamic steps, `spr` estimator, at most `rebuild_delay`: run each pass on a background thread from a copy of its step's state and take its decision up this long after it; the same run as passes on the stepping thread, without their cost on it; 0: on the stepping thread")
+                  "dynamic steps, at most `rebuild_delay`: run each pass (with the `goal` estimator, its targets' estimates too) on a background thread from a copy of its step's state and take its decision up this long after it; the same run as passes on the stepping thread, without their cost on it; 0: on the stepping thread")
             .real("lookahead", [](S& s) -> double& { return s.lookahead; }, "s", Range::closed(0, 10),
                   "refine to `max_level`, first, the elements each needle's tip will reach within this time by its trajectory (the path ahead, the entry point before the touch), so that deferred mesh changes do not lag the tip; 0: off ([method.md](method.md#refinement-ahead-of-the-tip))")
             .flag("coarsen.enabled", [](S& s) -> bool& { return s.coarsen; }, "merge children back; coarsening runs only with `enabled: true`")

@@ -4,7 +4,7 @@
 // component, regularised as its mean over a small ball of material points around the
 // target (radius about one finest element; the displacement at a point is not bounded in
 // 3D elasticity): Q_k(u) = mean_s u_k(X_s). Its dual problems, K z_k = g_k with g_k the
-// load of Q_k, are solved with the tissue's current factorisation (one 3-column solve).
+// load of Q_k, are solved with a factor of K (solver/stiffness_factor.hpp; one 3-column solve).
 // Galerkin orthogonality gives Q_k(u) - Q_k(u_h) = a(u - u_h, z_k - z_k,h); both errors are
 // taken from SPR recovery (the recovery-based goal estimate of Gonzalez-Estrada, Rodenas,
 // Nadal, Bordas and Kerfriden), per element
@@ -53,7 +53,6 @@ struct TargetError {
   double eta_u = 0;             // the primal energy-norm estimate
   Vec3 eta_z = Vec3::Zero();    // the duals'
   std::vector<double> indicator;  // per element, for goal-oriented marking
-  int dual_iterations = 0;
 };
 
 // From the primal estimate (SprEstimator::estimate of x, reference) and the dual solutions

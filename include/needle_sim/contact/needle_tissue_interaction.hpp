@@ -99,6 +99,14 @@ class NeedleTissueInteraction {
   // point to the tip's last anchor, a point every quarter shaft spacing (empty before a
   // puncture; a new puncture starts a new one).
   const std::vector<Vec3>& cutPath(int needle) const { return tracks_[needle].path; }
+  // Where the next constraint points of each cutting needle will be embedded (rest space): its
+  // next shaft point (a straight needle's, exactly where it will be laid) and its tip half and
+  // one shaft spacing ahead along the cut path, the first also a quarter spacing off the path
+  // in four directions (the tip's material point drifts off the rest path). The tissue body
+  // precomputes the compliance columns of their elements (TissueBody::setElementsAhead, bound
+  // with the body; a deferred mesh change's new body too: Simulation::constraintPoints).
+  std::vector<Vec3> pointsAhead() const;
+  std::vector<int> elementsAhead() const;
   // The same path where its material points are now (the deformed tissue), in `out` (a point
   // a rounding error outside the cells after a mesh change is taken in the nearest one).
   void cutPathNow(int needle, std::vector<Vec3>& out) const;

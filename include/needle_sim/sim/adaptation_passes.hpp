@@ -2,7 +2,8 @@
 // When and where the mesh adapts (doc/method.md, "Refinement and coarsening", "Passes in the
 // background"). A pass estimates, marks and refines or coarsens the forest for the scene's
 // estimator; it runs every `every_steps` steps and at once on a contact event. On dynamic
-// steps it may be deferred: with estimate_delay the pass itself runs on a background thread
+// steps it may be deferred: with estimate_delay the pass itself (the goal-oriented one too)
+// runs on a background thread
 // from a copy of its step's state and its decision is taken up `estimate_delay` later (or
 // sooner, waiting for it, when a touch or puncture needs the mesh now); with rebuild_delay a
 // change's body is built in the background and switched to `rebuild_delay` after the
@@ -24,6 +25,7 @@
 #include "needle_sim/adapt/error_estimator.hpp"
 #include "needle_sim/core/step_stats.hpp"
 #include "needle_sim/sim/adaptive_tissue.hpp"
+#include "needle_sim/sim/target_error_estimator.hpp"
 
 namespace needle_sim {
 
@@ -46,8 +48,8 @@ struct StepClock {
 class AdaptationPasses {
  public:
   // estimator: the scene's (the energy estimate, or goal-oriented indicators); background
-  // passes use the energy estimator's SPR fits (goal-oriented passes stay on the stepping
-  // thread). points: the constraint points' rest positions now (their elements' compliance
+  // passes use the energy estimator's SPR fits (goal-oriented ones also a GoalPass, given by
+  // setGoalPasses; without, they stay on the stepping thread). points: the constraint points' rest positions now (their elements' compliance
   // columns are built with a new body).
   AdaptationPasses(const AdaptivitySettings& settings, AdaptiveTissue& tissue, EnergyErrorEstimator& energy,
                    ErrorEstimator& estimator, bool goal, std::function<std::vector<Vec3>()> points);
@@ -61,6 +63,12 @@ class AdaptationPasses {
   // AdaptivitySettings::lookahead: the rest-configuration points on the tips' paths ahead,
   // taken on the stepping thread when a pass starts (none: no refinement ahead).
   void setAhead(std::function<std::vector<Vec3>()> ahead) { ahead_ = std::move(ahead); }
+  // Goal-oriented passes off the stepping thread: `start` makes a pass's GoalPass at its step
+  // (on the stepping thread), `adopt` takes up its targets' estimates at the decision.
+  void setGoalPasses(std::function<std::shared_ptr<GoalPass>()> start, std::function<void(const GoalPass&)> adopt) {
+    goal_start_ = std::move(start);
+    goal_adopt_ = std::move(adopt);
+  }
 
   // After a step that may adapt (dynamic, or with needles): takes up a pending decision or
   // switch due now, and runs a pass when one is due. signature: the constraint counts and
@@ -103,6 +111,8 @@ class AdaptationPasses {
   bool goal_;
   std::function<std::vector<Vec3>()> points_;
   std::function<std::vector<Vec3>()> ahead_;
+  std::function<std::shared_ptr<GoalPass>()> goal_start_;
+  std::function<void(const GoalPass&)> goal_adopt_;
   std::vector<Vec3> ahead() const { return ahead_ ? ahead_() : std::vector<Vec3>{}; }
   std::unique_ptr<PendingRebuild> pending_rebuild_;
   std::unique_ptr<PendingPass> pending_pass_;

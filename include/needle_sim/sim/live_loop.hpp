@@ -7,6 +7,8 @@
 //     (solver.linear.async_lag 0: no step waits for it), unless deterministic.
 //   - Lagged rotations (solver.linear.rotation_drift, doc/method.md "Time integration") where a
 //     stale factor costs most: nearly incompressible tissue.
+//   - The compliance columns ahead of the needles computed by the refreshes
+//     (solver.linear.columns_ahead).
 #include "needle_sim/scene/scene.hpp"
 
 namespace needle_sim {

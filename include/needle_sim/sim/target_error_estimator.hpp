@@ -33,7 +33,8 @@ class TargetErrorEstimator {
   TargetErrorEstimator& operator=(const TargetErrorEstimator&) = delete;
 
   // Target i's estimate of the state `s` describes, computed on first use at each step (one
-  // 3-column dual solve with the body's current factor and three SPR recoveries). After a
+  // 3-column dual solve with a factor of the stiffness at the step's positions, made once a
+  // step for all targets, and three SPR recoveries). After a
   // brain shift it is the change since the shift plus the shift's own error (errors add, so
   // do their bounds).
   const TargetError& of(int i, const TargetErrorState& s);
@@ -61,6 +62,15 @@ class TargetErrorEstimator {
   long lastStep() const { return last_step_; }
   // Radius of target i's regularised point [m].
   double radius(int i, const TrackedPoints& points) const { return points.radius(i, default_radius_); }
+  // Target i's regularised point on the mesh of `s` (made on first use).
+  const TargetQoi& qoi(int i, const TargetErrorState& s);
+  // The brain shift's own error of target i, or nullptr.
+  const TargetError* shiftError(int i) const {
+    return i < static_cast<int>(shift_errors_.size()) ? &shift_errors_[static_cast<size_t>(i)] : nullptr;
+  }
+  // An estimate of target i at `step` made elsewhere (a goal-oriented pass off the stepping
+  // thread, GoalPass) becomes the last one; the next of() at a later step estimates anew.
+  void adopt(int i, TargetError e, long step);
 
  private:
   // What the estimate is of at `s`: the reference state (nullptr: rest) and its primal estimate.
@@ -72,7 +82,6 @@ class TargetErrorEstimator {
 
   double default_radius_;
   std::vector<TargetQoi> qois_;            // per target, on the mesh in use (empty: to be made)
-  std::vector<Eigen::MatrixXd> duals_;     // per target, the last duals on this mesh
   std::vector<TargetError> errors_;
   std::vector<long> steps_;                // per target: the step its estimate is of
   long errors_step_ = -1;                  // -1: none since the last forget()
@@ -80,12 +89,59 @@ class TargetErrorEstimator {
   long last_step_ = -1;
   ErrorEstimate goal_primal_;              // the primal estimate against the shifted state (uniform meshes)
   long goal_primal_step_ = -1;
+  std::vector<Eigen::MatrixXd> duals_;     // per target, the duals of the step below (underPrescribedShift)
+  long factor_step_ = -1;                  // the step the body's dual factor was made at (-1: none since forget())
+  VecX factor_x_;                          // ... and its positions
   std::vector<TargetError> shift_errors_;  // the brain shift's, per target (empty: none)
 };
 
+// Target i's estimate from the dual solutions Z of its regularised point (goalEstimate), plus
+// the brain shift's own error when it is of the change since the shift (reference given):
+// errors add, so do their bounds. `shift`: the shift's error, or nullptr.
+TargetError targetEstimate(const SprEstimator& spr, const VecX& x, const VecX* reference, const ErrorEstimate& primal,
+                           const Eigen::MatrixXd& Z, const TargetQoi& qoi, const HexMesh& mesh, const TargetError* shift);
+
 // Goal-oriented marking: the controlled targets' element indicators, each relative to the
 // tolerance; refinement only while a target's bound is above it. A target whose estimate
-// failed contributes the energy estimate's pattern instead.
+// failed (nullptr or invalid) contributes the energy estimate's pattern instead.
+ErrorEstimate goalIndicators(const ErrorEstimate& energy, const std::vector<const TargetError*>& targets,
+                             double tolerance, bool& refine);
+
+// A goal-oriented pass off the stepping thread (AdaptationPasses, adaptivity.estimate_delay).
+// Made on the stepping thread at the pass's step: copies of what the controlled targets'
+// estimates read there (their regularised points, the shift's errors, the support springs)
+// and the body's background stiffness factor, lent until the decision. run() on the pass's
+// thread gives what GoalErrorEstimator::localErrors() would have at that step, bit for bit;
+// adoptInto() at the decision makes its targets' estimates the last ones.
+class GoalPass {
+ public:
+  GoalPass(TargetErrorEstimator& estimator, const TargetErrorState& s, std::vector<int> targets, double tolerance);
+  // From the positions x at the pass's step, the rotations' starting points there and the
+  // energy estimator's estimate of them (SprEstimator::estimate against its reference).
+  const ErrorEstimate& run(const SprEstimator& spr, const VecX& x, const std::vector<Eigen::Quaterniond>& guesses,
+                           const ErrorEstimate& energy);
+  bool refinementWanted() const { return refine_; }
+  const std::vector<TargetError>& errors() const { return errors_; }
+  void adoptInto(TargetErrorEstimator& estimator) const;
+
+ private:
+  std::vector<int> targets_;
+  std::vector<TargetQoi> qois_;
+  std::vector<TargetError> shift_;
+  std::vector<char> has_shift_;
+  const VecX* reference_;  // the field's (TargetErrorEstimator::estimated)
+  bool own_primal_;        // ... not the energy estimate's: a primal estimate of its own
+  ElementBlocks support_;
+  const HexMesh& mesh_;
+  StiffnessFactor& factor_;
+  double tolerance_;
+  long step_;
+  std::vector<TargetError> errors_;
+  ErrorEstimate indicators_;
+  bool refine_ = true;
+};
+
+// Goal-oriented marking on the stepping thread (goalIndicators of the targets' estimates now).
 class GoalErrorEstimator : public ErrorEstimator {
  public:
   GoalErrorEstimator(EnergyErrorEstimator& energy, std::function<const TargetError&(int)> target_error,

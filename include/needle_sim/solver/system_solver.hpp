@@ -52,6 +52,7 @@ struct LinearSolverSettings {
   bool async = true;           // refresh the factor on a background thread
   int async_lag = 4;           // swap it in this many calls after the request (0: when ready)
   double rotation_drift = 0;   // lagged rotations (TissueBody::freeMotion): refresh past this angle [rad]; 0: off
+  bool columns_ahead = false;  // a refresh also computes the columns ahead of the needles (TissueBody::setElementsAhead)
 };
 
 // Extra symmetric stiffness given per element as 24x24 blocks over the element's nodes
@@ -100,16 +101,6 @@ class SystemSolver {
   // computed (dofs, one column of X each) and the factor version they belong to; false when
   // there are none (none asked for, or already taken).
   bool takeRefreshColumns(std::vector<int>& dofs, Eigen::MatrixXd& X, long& version);
-  // Several right-hand sides of (c_m M + c_k K) X = B with CG preconditioned by the factor as
-  // it is, whatever matrix it was made for (the dual problems of a goal-oriented estimate:
-  // the stiffness with the dynamic step's factor), not refactorising a factor in use (one is
-  // made only if there is none, or if the one at hand was given up by invalidate(); such a
-  // factor serves the next calls with the same c_m, c_k until the matrix changes, and the
-  // next solve() refactorises). X, when it has B's shape, is the initial guess. Returns the
-  // iterations of the slowest column; converged false if a column missed the tolerance
-  // within max_iterations.
-  LinearSolveStats solveWithFactor(const VecX& mass_free, double c_m, double c_k, const Eigen::MatrixXd& B,
-                                   Eigen::MatrixXd& X, double tolerance, int max_iterations, bool& converged);
   // out = A v over the free DOFs, matrix-free.
   void apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const;
   // Adds c_k * blocks to A until cleared (nullptr); the caller keeps them alive and
@@ -132,6 +123,8 @@ class SystemSolver {
   void invalidate();
 
   const CholmodSolver& factor() const { return *chol_; }
+  // The assembly pattern and scatter map (constant while this solver lives; StiffnessFactor).
+  const SymmetricAssembler& assembler() const { return assembler_; }
   // Changes whenever the factor in use changes (the compliance cache's column versions).
   long factorVersion() const { return version_; }
   const LinearSolverSettings& settings() const { return settings_; }
@@ -211,10 +204,6 @@ class SystemSolver {
   bool stale_ = true;          // refresh the factor (in the background if async)
   int fresh_iterations_ = 0;   // GMRES iterations of the first solve with the factor (nonsymmetric term)
   bool must_refactor_ = false;  // refactorise before this call's solve (the matrix changed)
-  // The factor is one solveWithFactor made for c_m M + c_k K (dual_c_m_, dual_c_k_) after an
-  // invalidate(), current until the matrix or the factor changes.
-  bool dual_factor_ = false;
-  double dual_c_m_ = 0, dual_c_k_ = 0;
   bool async_ = true;
   bool hold_ = false;
   long calls_ = 0, calls_since_factor_ = 0;

@@ -26,6 +26,11 @@ class ComplianceCache {
   long version(int free_dof) const { return columns_.at(free_dof).version; }
   size_t size() const { return columns_.size(); }
   void clear() { columns_.clear(); }
+  // Columns of these DOFs are kept whatever prepare() asks for (wanted soon: the elements ahead
+  // of the needles, TissueBody::setElementsAhead); computed only when adopted or prepared.
+  void keep(std::vector<int> dofs) { keep_ = std::move(dofs); }
+  // Columns prepare() solved for DOFs that had none, so far (not the stale ones it refreshed).
+  long solvedNew() const { return solved_new_; }
   // The free DOFs with a column, sorted.
   std::vector<int> dofs() const;
   // Columns computed elsewhere with the factor of `version` (a background refresh's, taken
@@ -38,6 +43,8 @@ class ComplianceCache {
     long version;  // factorisation it came from
   };
   std::unordered_map<int, Column> columns_;
+  std::vector<int> keep_;
+  long solved_new_ = 0;
 };
 
 }  // namespace needle_sim

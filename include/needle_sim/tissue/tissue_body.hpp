@@ -23,6 +23,7 @@
 #include "needle_sim/fem/hex_mesh.hpp"
 #include "needle_sim/solver/dof_map.hpp"
 #include "needle_sim/solver/solver_settings.hpp"
+#include "needle_sim/solver/stiffness_factor.hpp"
 #include "needle_sim/solver/system_solver.hpp"
 #include "needle_sim/tissue/compliance_cache.hpp"
 #include "needle_sim/tissue/load_control.hpp"
@@ -93,12 +94,12 @@ class TissueBody {
   // blocks, which later steps do not have).
   void keepStaticFactor(bool on);
 
-  // The dual problems of a goal-oriented estimate: K Z = G (G: loads, 3n per column) with
-  // the current tangent and the Dirichlet conditions, by CG on the body's factor (that of the
-  // last step, dynamic or static: never a new one). Z: displacements (3n per column, zero
-  // on prescribed DOFs, hanging DOFs from their masters; as it comes, the initial guess
-  // when it has G's shape). Returns false when CG did not converge within max_iterations.
-  bool solveDual(const Eigen::MatrixXd& G, Eigen::MatrixXd& Z, int& iterations, int max_iterations = 200) const;
+  // Factors of the stiffness for the dual problems of goal-oriented estimates, K Z = G at the
+  // positions' rotations with the support springs (support()) and the Dirichlet conditions
+  // (StiffnessFactor): the stepping thread's, and one lent to a goal-oriented pass off it
+  // (GoalPass). Made on first use, on the stepping thread; they live as long as this body.
+  StiffnessFactor& dualFactor() const;
+  StiffnessFactor& backgroundStiffnessFactor() const;
 
   double kineticEnergy() const;
   double elasticEnergy() const { return model_->elasticEnergy(x_); }
@@ -111,6 +112,14 @@ class TissueBody {
   // and the compliance columns of the free DOFs of `elements` (where the constraint points
   // are), so that its first steps need neither.
   void prepareForSteps(double h, const std::vector<int>& elements);
+  // The elements whose compliance columns the constraint solve will want soon (the next
+  // constraint points': NeedleTissueInteraction::elementsAhead): a background factor refresh
+  // computes their columns too, and the cache keeps them, so that a new shaft point or a tip
+  // entering an element does not solve for them on the stepping thread. Not copied.
+  void setElementsAhead(std::function<std::vector<int>()> elements) { elements_ahead_ = std::move(elements); }
+  // Compliance columns solved where they were first wanted (the step's constraint solve, or
+  // prepareForSteps), for DOFs without one: the solves the columns ahead are to spare.
+  long complianceColumnsSolved() const { return columns_.solvedNew(); }
   // No background factor refresh while on (SystemSolver::holdRefresh): this body is about to
   // be replaced by one being built.
   void holdFactorRefresh(bool on) { solver_->holdRefresh(on); }
@@ -153,6 +162,12 @@ class TissueBody {
   bool keep_static_factor_ = false;
   std::optional<ElementBlocks> static_factor_blocks_;
   mutable ComplianceCache columns_;
+  std::function<std::vector<int>()> elements_ahead_;
+  // The free DOFs of `elements` (hanging ones: their masters'), each once.
+  std::vector<int> freeDofsOf(const std::vector<int>& elements) const;
+  // What a background refresh computes columns for: the cached ones and those ahead.
+  std::vector<int> refreshColumnDofs();
+  mutable std::unique_ptr<StiffnessFactor> dual_factor_, background_dual_factor_;  // made on first use
 };
 
 }  // namespace needle_sim

@@ -387,7 +387,6 @@ void RunRecorder::writeSummary(const std::string& status, double wall_s, long fa
           t["error_step"] = sim_.lastTargetErrorStep();
           t["eta_energy"] = e.eta_u;
           t["eta_dual"] = arr(e.eta_z);
-          t["dual_iterations"] = e.dual_iterations;
         } else {
           t["error_estimate"] = nullptr;
           t["error_bound"] = nullptr;

@@ -71,9 +71,6 @@ void checkAdaptivity(const SceneReader& r, const Scene& s) {
     r.fail(p + ".estimate_delay", "must be in [0, rebuild_delay = " + SceneReader::fmt(a.rebuild_delay) +
                                       "] s (a change is switched to after its decision), got " +
                                       SceneReader::fmt(a.estimate_delay));
-  if (a.estimate_delay > 0 && goal)
-    r.fail(p + ".estimate_delay", "must be 0 with estimator: goal (its dual solves use the tissue's factor, "
-                                  "on the stepping thread)");
   // A merged parent's error is about twice its children's combined (linear elements, h
   // doubled): below theta / 2 it cannot be marked again at once, so nothing flickers.
   if (a.coarsen && a.marking == AdaptivitySettings::Marking::Max && !(a.theta_coarsen < 0.5 * a.theta))

@@ -26,6 +26,7 @@ void AdaptationPasses::setDelayForTesting(double ms) { g_delay_ms = ms; }
 struct AdaptationPasses::PassDecision {
   AdaptationResult result;
   ErrorEstimate estimate;  // of the pass's step
+  std::shared_ptr<const GoalPass> goal;  // goal-oriented: the targets' estimates made with it
   double estimate_ms = 0, mark_refine_ms = 0;  // on the background thread
 };
 
@@ -133,7 +134,7 @@ void AdaptationPasses::flush(StepStats& stats) {
 void AdaptationPasses::adaptNow(const StepClock& clock, bool defer, StepStats& stats) {
   // A pass estimates the mesh the last pass decided on: a deferred change switches first.
   flush(stats);
-  if (defer && lagSteps(settings_.estimate_delay, clock.dt) > 0 && !goal_) {
+  if (defer && lagSteps(settings_.estimate_delay, clock.dt) > 0 && (!goal_ || goal_start_)) {
     const auto t0 = steadyNow();
     startPass(clock);
     stats.adapted = true;
@@ -215,13 +216,15 @@ void AdaptationPasses::startPass(const StepClock& clock) {
   AdaptiveTissue* tissue = &tissue_;
   EnergyErrorEstimator* energy = &energy_;
   const TissueBody& body = tissue_.body();
+  std::shared_ptr<GoalPass> goal = goal_ ? goal_start_() : nullptr;
   tissue_.lend();
   energy_.lend();
   pp->build = std::async(
                   std::launch::async,
                   [tissue, energy, spr, forest, reference, h = clock.dt, decided = std::move(decided), slot = pp->slot,
                    retired = tissue_.takeRetired(), x = VecX(body.positions()), v = VecX(body.velocities()),
-                   guesses = body.model().rotationGuesses(), points = points_(), ahead = ahead()]() mutable
+                   guesses = body.model().rotationGuesses(), points = points_(), ahead = ahead(),
+                   goal = std::move(goal)]() mutable
                   -> std::shared_ptr<AdaptiveTissue::Prepared> {
                     lowerThisThreadPriority();
                     nameThisThread("ns_adapt");
@@ -236,14 +239,21 @@ void AdaptationPasses::startPass(const StepClock& clock) {
                       auto d = std::make_shared<PassDecision>();
                       const auto t0 = steadyNow();
                       d->estimate = spr->estimate(x, reference, &guesses);
+                      const ErrorEstimate* marking = &d->estimate;
+                      bool refine = true;
+                      if (goal) {
+                        marking = &goal->run(*spr, x, guesses, d->estimate);
+                        refine = goal->refinementWanted();
+                        d->goal = goal;
+                      }
                       const auto t1 = steadyNow();
-                      d->result = forest->adapt(d->estimate, true, ahead);
+                      d->estimate_ms = msBetween(t0, t1);
+                      d->result = forest->adapt(*marking, refine, ahead);
                       if (d->result.changed) {
                         change = tissue->forestMesh(*forest);
                         xt = forest->transfer(x);
                         vt = forest->transfer(v);
                       }
-                      d->estimate_ms = msBetween(t0, t1);
                       d->mark_refine_ms = msSince(t1);
                       testDelay();  // tests: a late pass
                       const bool changed = d->result.changed;
@@ -278,6 +288,7 @@ void AdaptationPasses::takePass(StepStats& stats) {
     d = pp.slot->d;
   }
   energy_.adopt(d->estimate);  // the last one made (of the pass's step, not of this one)
+  if (d->goal && goal_adopt_) goal_adopt_(*d->goal);
   counters_.ahead_marked += d->result.ahead;
   stats.refined += d->result.refined;
   stats.coarsened += d->result.coarsened;
@@ -304,7 +315,10 @@ void AdaptationPasses::afterStep(const StepClock& clock, long signature, long st
   // displacement from those of passes on the stepping thread). A pass due at a new or
   // released constraint point starts at the decision's step, after it: waiting there and
   // then for the background thread (a new shaft point a step after the regular pass) made
-  // the adaptive phantom's slowest steps, 1-2.7 ms against a median of 0.3.
+  // the adaptive phantom's slowest steps, 1-2.7 ms against a median of 0.3. So does a
+  // goal-oriented pass due at a touch or puncture: its pass takes 25-60 ms (a factorisation
+  // of K), and waiting for it at dbs_goal's touch, puncture and insertion (three steps in a
+  // row) made steps of 30 ms in the node.
   bool switched = false;
   if (pending_pass_ && clock.step >= pending_pass_->take_step) takePass(stats);
   if (pending_rebuild_ && clock.step >= pending_rebuild_->switch_step) {
@@ -313,7 +327,7 @@ void AdaptationPasses::afterStep(const StepClock& clock, long signature, long st
   }
   const bool was_due = pass_due_;
   pass_due_ = pass_due_ || (clock.step - clock.step_base) % settings_.every_steps == 0 || signature != contact_signature_;
-  if (pass_due_ && pending_pass_ && states != contact_states_) takePass(stats);
+  if (pass_due_ && pending_pass_ && states != contact_states_ && !goal_) takePass(stats);
   if (pass_due_ && !was_due && pending_pass_) ++counters_.passes_after_decision;
   if (pass_due_ && !pending_pass_ && !pending_rebuild_ && !switched) {
     pass_due_ = false;

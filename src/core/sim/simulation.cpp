@@ -148,6 +148,12 @@ void Simulation::makeEstimation(const Simulation* o) {
                                                  !goal_targets_.empty(), points);
   }
   if (passes_ && scene_.adaptivity->lookahead > 0) passes_->setAhead([this] { return aheadPoints(); });
+  if (passes_ && goal_)
+    passes_->setGoalPasses(
+        [this] {
+          return std::make_shared<GoalPass>(*target_errors_, errorState(), goal_targets_, scene_.adaptivity->goal_tolerance);
+        },
+        [this](const GoalPass& g) { g.adoptInto(*target_errors_); });
   tissue_->setOnSwitch([this](AdaptiveTissue::Switch& s) { onMeshSwitch(s); });
 }
 
@@ -161,8 +167,13 @@ void Simulation::makeInteraction(const NeedleTissueInteraction* o) {
 
 std::vector<Vec3> Simulation::constraintPoints() const {
   std::vector<Vec3> points;
-  if (interaction_)
+  if (interaction_) {
     for (const auto& c : interaction_->constraints()) points.push_back(c->tissue.rest);
+    // A deferred mesh change's body gets the columns ahead of the needles too: a shaft point
+    // laid or a tip entering an element just after the switch found none (DBS, 4-8 ms).
+    if (scene_.solver.linear.columns_ahead)
+      for (const Vec3& p : interaction_->pointsAhead()) points.push_back(p);
+  }
   return points;
 }
 

@@ -19,12 +19,42 @@ void TargetErrorEstimator::forget() {
   duals_.clear();
   errors_step_ = -1;
   goal_primal_step_ = -1;
+  factor_step_ = -1;
   steps_.assign(steps_.size(), -1);
 }
 
 void TargetErrorEstimator::targetsChanged() {
   qois_.clear();
   steps_.assign(steps_.size(), -1);
+}
+
+const TargetQoi& TargetErrorEstimator::qoi(int i, const TargetErrorState& s) {
+  const size_t n = s.points.numTargets();
+  if (qois_.size() != n) {
+    const PointLocator locator(s.body.mesh());
+    qois_.clear();
+    for (int k = 0; k < static_cast<int>(n); ++k)
+      qois_.push_back(targetQoi(s.body.mesh(), locator, s.points.target(k).planned, radius(k, s.points)));
+  }
+  return qois_[static_cast<size_t>(i)];
+}
+
+TargetError targetEstimate(const SprEstimator& spr, const VecX& x, const VecX* reference, const ErrorEstimate& primal,
+                           const Eigen::MatrixXd& Z, const TargetQoi& qoi, const HexMesh& mesh, const TargetError* shift) {
+  TargetError e = goalEstimate(spr, x, reference, primal, Z, qoi, mesh);
+  // After a brain shift the estimate is of the change since; the shift's own error adds
+  // (errors add, so do their bounds); with target_shift, that of the scaled problem
+  // (underPrescribedShift).
+  if (!reference || !shift) return e;
+  if (shift->valid) {
+    e.estimate += shift->estimate;
+    e.component_bound += shift->component_bound;
+    e.bound += shift->bound;
+    e.global_component_bound += shift->global_component_bound;
+    e.global_bound += shift->global_bound;
+  }
+  e.qoi += shift->qoi;
+  return e;
 }
 
 const TargetError& TargetErrorEstimator::of(int i, const TargetErrorState& s) {
@@ -35,38 +65,39 @@ const TargetError& TargetErrorEstimator::of(int i, const TargetErrorState& s) {
   }
   if (steps_[i] == s.step && errors_step_ != -1) return errors_[i];
   const HexMesh& mesh = s.body.mesh();
-  if (qois_.size() != n) {
-    const PointLocator locator(mesh);
-    qois_.clear();
-    for (int k = 0; k < static_cast<int>(n); ++k)
-      qois_.push_back(targetQoi(mesh, locator, s.points.target(k).planned, radius(k, s.points)));
-  }
+  const TargetQoi& q = qoi(i, s);
   const Estimated in = estimated(s);
   if (duals_.size() != n) duals_.resize(n);
-  Eigen::MatrixXd& Z = duals_[i];  // the last pass's on this mesh: CG starts from it
-  int iterations = 0;
-  TargetError e;
-  if (s.body.solveDual(qois_[i].load(mesh), Z, iterations))
-    e = goalEstimate(s.energy.spr(), s.body.positions(), in.reference, *in.primal, Z, qois_[i], mesh);
-  e.dual_iterations = iterations;
-  // After a brain shift the estimate is of the change since; the shift's own error adds
-  // (errors add, so do their bounds); with target_shift, that of the scaled problem
-  // (underPrescribedShift).
-  const VecX* ref = in.reference;
-  if (e.valid && ref && i < static_cast<int>(shift_errors_.size()) && shift_errors_[i].valid) {
-    e.estimate += shift_errors_[i].estimate;
-    e.component_bound += shift_errors_[i].component_bound;
-    e.bound += shift_errors_[i].bound;
-    e.global_component_bound += shift_errors_[i].global_component_bound;
-    e.global_bound += shift_errors_[i].global_bound;
+  // One factor of the stiffness a step, for every target asked for there.
+  StiffnessFactor& factor = s.body.dualFactor();
+  bool factored = factor_step_ == s.step && factor_x_.size() == s.body.positions().size() &&
+                  factor_x_ == s.body.positions();
+  if (!factored) {
+    factored = factor.factorAt(s.body.positions(), s.body.model().rotationGuesses(), s.body.support());
+    factor_step_ = factored ? s.step : -1;
+    factor_x_ = s.body.positions();
   }
-  if (e.valid && ref && i < static_cast<int>(shift_errors_.size())) e.qoi += shift_errors_[i].qoi;
+  Eigen::MatrixXd& Z = duals_[i];
+  TargetError e;
+  if (factored && factor.solve(q.load(mesh), Z))
+    e = targetEstimate(s.energy.spr(), s.body.positions(), in.reference, *in.primal, Z, q, mesh, shiftError(i));
   errors_[i] = std::move(e);
   steps_[i] = s.step;
   errors_step_ = s.step;
   last_step_ = s.step;
   ever_ = true;
   return errors_[i];
+}
+
+void TargetErrorEstimator::adopt(int i, TargetError e, long step) {
+  if (errors_.size() <= static_cast<size_t>(i)) {
+    errors_.resize(static_cast<size_t>(i) + 1);
+    steps_.resize(static_cast<size_t>(i) + 1, -1);
+  }
+  errors_[static_cast<size_t>(i)] = std::move(e);
+  steps_[static_cast<size_t>(i)] = -1;  // of an earlier step: not this step's cache
+  last_step_ = step;
+  ever_ = true;
 }
 
 TargetErrorEstimator::Estimated TargetErrorEstimator::estimated(const TargetErrorState& s) {
@@ -94,9 +125,7 @@ TargetError TargetErrorEstimator::underPrescribedShift(int i, int t, const Targe
   if (!(std::abs(along) > 0)) return ei;
   const Estimated in = estimated(s);
   const Eigen::MatrixXd Z = duals_[i] - (duals_[t] * d) * (ei.qoi.transpose() / along);
-  TargetError e = goalEstimate(s.energy.spr(), s.body.positions(), in.reference, *in.primal, Z, qois_[i], s.body.mesh());
-  e.dual_iterations = ei.dual_iterations;
-  return e;
+  return goalEstimate(s.energy.spr(), s.body.positions(), in.reference, *in.primal, Z, qois_[i], s.body.mesh());
 }
 
 const std::vector<TargetError>& TargetErrorEstimator::all(const TargetErrorState& s) {
@@ -104,28 +133,75 @@ const std::vector<TargetError>& TargetErrorEstimator::all(const TargetErrorState
   return errors_;
 }
 
-const ErrorEstimate& GoalErrorEstimator::localErrors() {
-  const ErrorEstimate& est = energy_.localErrors();
-  goal_ = ErrorEstimate{};
-  goal_.eta.assign(est.eta.size(), 0.0);
-  refine_ = false;
-  for (int t : targets_) {
-    const TargetError& e = target_error_(t);
-    if (!e.valid) {
-      refine_ = true;  // no estimate: fall back on the energy estimate's pattern
-      for (size_t k = 0; k < goal_.eta.size(); ++k) goal_.eta[k] += est.eta[k] / std::max(est.max, 1e-300);
+ErrorEstimate goalIndicators(const ErrorEstimate& est, const std::vector<const TargetError*>& targets,
+                             double tolerance, bool& refine) {
+  ErrorEstimate goal;
+  goal.eta.assign(est.eta.size(), 0.0);
+  refine = false;
+  for (const TargetError* e : targets) {
+    if (!e || !e->valid) {
+      refine = true;  // no estimate: fall back on the energy estimate's pattern
+      for (size_t k = 0; k < goal.eta.size(); ++k) goal.eta[k] += est.eta[k] / std::max(est.max, 1e-300);
       continue;
     }
-    refine_ = refine_ || e.bound > tolerance_;
-    for (size_t k = 0; k < goal_.eta.size(); ++k) goal_.eta[k] += e.indicator[k] / tolerance_;
+    refine = refine || e->bound > tolerance;
+    for (size_t k = 0; k < goal.eta.size(); ++k) goal.eta[k] += e->indicator[k] / tolerance;
   }
   double sum = 0;
-  for (double v : goal_.eta) {
-    goal_.max = std::max(goal_.max, v);
+  for (double v : goal.eta) {
+    goal.max = std::max(goal.max, v);
     sum += v * v;
   }
-  goal_.global = std::sqrt(sum);
+  goal.global = std::sqrt(sum);
+  return goal;
+}
+
+const ErrorEstimate& GoalErrorEstimator::localErrors() {
+  const ErrorEstimate& est = energy_.localErrors();
+  std::vector<const TargetError*> errors;
+  for (int t : targets_) errors.push_back(&target_error_(t));
+  goal_ = goalIndicators(est, errors, tolerance_, refine_);
   return goal_;
+}
+
+GoalPass::GoalPass(TargetErrorEstimator& estimator, const TargetErrorState& s, std::vector<int> targets,
+                   double tolerance)
+    : targets_(std::move(targets)),
+      reference_(s.energy.reference() ? s.energy.reference() : s.shifted),
+      own_primal_(reference_ != s.energy.reference()),
+      support_(s.body.support()),
+      mesh_(s.body.mesh()),
+      factor_(s.body.backgroundStiffnessFactor()),
+      tolerance_(tolerance),
+      step_(s.step) {
+  for (int t : targets_) {
+    qois_.push_back(estimator.qoi(t, s));
+    const TargetError* sh = estimator.shiftError(t);
+    shift_.push_back(sh ? *sh : TargetError{});
+    has_shift_.push_back(sh != nullptr);
+  }
+}
+
+const ErrorEstimate& GoalPass::run(const SprEstimator& spr, const VecX& x, const std::vector<Eigen::Quaterniond>& guesses,
+                                   const ErrorEstimate& energy) {
+  // As TargetErrorEstimator::of() and GoalErrorEstimator::localErrors() at the pass's step.
+  ErrorEstimate own;
+  if (own_primal_) own = spr.estimate(x, reference_, &guesses);
+  const ErrorEstimate& primal = own_primal_ ? own : energy;
+  errors_.assign(targets_.size(), TargetError{});
+  const bool factored = factor_.factorAt(x, guesses, support_);
+  Eigen::MatrixXd Z;
+  for (size_t k = 0; k < targets_.size(); ++k)
+    if (factored && factor_.solve(qois_[k].load(mesh_), Z))
+      errors_[k] = targetEstimate(spr, x, reference_, primal, Z, qois_[k], mesh_, has_shift_[k] ? &shift_[k] : nullptr);
+  std::vector<const TargetError*> errors;
+  for (const TargetError& e : errors_) errors.push_back(&e);
+  indicators_ = goalIndicators(energy, errors, tolerance_, refine_);
+  return indicators_;
+}
+
+void GoalPass::adoptInto(TargetErrorEstimator& estimator) const {
+  for (size_t k = 0; k < targets_.size(); ++k) estimator.adopt(targets_[k], errors_[k], step_);
 }
 
 }  // namespace needle_sim

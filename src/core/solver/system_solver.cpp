@@ -38,9 +38,6 @@ SystemSolver::SystemSolver(const SystemSolver& o, const CorotationalHexModel& mo
       version_(o.version_),
       stale_(o.stale_),
       must_refactor_(o.must_refactor_),
-      dual_factor_(o.dual_factor_),
-      dual_c_m_(o.dual_c_m_),
-      dual_c_k_(o.dual_c_k_),
       async_(o.async_),
       hold_(o.hold_),
       calls_(o.calls_),
@@ -79,7 +76,6 @@ void SystemSolver::dropRefresh() {
 void SystemSolver::invalidate() {
   dropRefresh();
   must_refactor_ = true;
-  dual_factor_ = false;
 }
 
 void SystemSolver::apply(const VecX& mass_free, double c_m, double c_k, const VecX& v, VecX& out) const {
@@ -124,7 +120,6 @@ void SystemSolver::refactor(const VecX& mass_free, double c_m, double c_k, Linea
   st.refactored = true;
   ++version_;
   factor_rot_ = captured ? *capture_ : model_.rotations();
-  dual_factor_ = false;
   if (!ok)
     throw NumericalError(-1, "system matrix is not positive definite (are rigid motions "
                              "constrained? is the mesh inverted?)");
@@ -205,8 +200,7 @@ bool SystemSolver::finishRefresh(LinearSolveStats& st) {
     std::swap(chol_, r.factor);  // the old factor's buffers serve the next refresh
     factor_rot_ = r.rotations;
     ++version_;
-    dual_factor_ = false;
-    columns_version_ = r.columns.size() > 0 ? version_ : -1;
+      columns_version_ = r.columns.size() > 0 ? version_ : -1;
     stale_ = false;
     calls_since_factor_ = calls_ - r.requested_call;
     st.async_swapped = true;
@@ -313,45 +307,6 @@ bool SystemSolver::takeRefreshColumns(std::vector<int>& dofs, Eigen::MatrixXd& X
   version = columns_version_;
   columns_version_ = -1;
   return true;
-}
-
-LinearSolveStats SystemSolver::solveWithFactor(const VecX& mass_free, double c_m, double c_k, const Eigen::MatrixXd& B,
-                                               Eigen::MatrixXd& X, double tolerance, int max_iterations,
-                                               bool& converged) {
-  LinearSolveStats st;
-  // A factor of its own when there is none (the first estimate on a new mesh, before any
-  // step) or when the one at hand was given up (invalidate(): a matrix with other terms, such
-  // as the brain shift's skull-contact blocks, whose factor preconditioned the shift's duals
-  // so poorly that CG took 190 iterations a column on dbs_fine, 9 s, against 1 after one
-  // factorisation).
-  const bool current = dual_factor_ && dual_c_m_ == c_m && dual_c_k_ == c_k;
-  const bool own_factor = !chol_->factored() || (must_refactor_ && !current);
-  if (own_factor) refactor(mass_free, c_m, c_k, st);
-  const auto t0 = steadyNow();
-  auto A = [&](const VecX& v, VecX& out) { apply(mass_free, c_m, c_k, v, out); };
-  auto M = [&](const VecX& r, VecX& z) { chol_->solve(r, z); };
-  // X as it comes is the initial guess when it has B's shape (a previous pass's solution).
-  if (X.rows() != B.rows() || X.cols() != B.cols() || !X.allFinite()) X.setZero(B.rows(), B.cols());
-  converged = true;
-  for (Eigen::Index j = 0; j < B.cols(); ++j) {
-    VecX x = X.col(j);
-    const PcgResult r = pcg(A, M, B.col(j), x, tolerance, max_iterations);
-    X.col(j) = x;
-    st.iterations = std::max(st.iterations, r.iterations);
-    st.relative_residual = std::max(st.relative_residual, r.relative_residual);
-    converged = converged && r.converged && x.allFinite();
-  }
-  st.solve_ms += msSince(t0);
-  // A factor made here is of this call's matrix (the dual's K), not of the step's A: the next
-  // step must refactor rather than take it as its preconditioner, and the compliance cache
-  // must not take its columns (they would be K^-1's, about h(h + beta) too small).
-  if (own_factor) {
-    must_refactor_ = true;
-    dual_factor_ = true;
-    dual_c_m_ = c_m;
-    dual_c_k_ = c_k;
-  }
-  return st;
 }
 
 }  // namespace needle_sim

@@ -16,14 +16,16 @@ void ComplianceCache::prepare(const std::vector<int>& free_dofs, const CholmodSo
     else if (it->second.version != version) stale.emplace_back(it->second.version, f);
   }
   // Evict columns no longer in use once the cache is much larger than the working set.
-  if (columns_.size() > 2 * free_dofs.size() + 64) {
+  if (columns_.size() > 2 * (free_dofs.size() + keep_.size()) + 64) {
     std::unordered_map<int, Column> kept;
-    for (int f : free_dofs) {
-      auto it = columns_.find(f);
-      if (it != columns_.end()) kept.emplace(f, std::move(it->second));
-    }
+    for (const std::vector<int>* set : {&free_dofs, static_cast<const std::vector<int>*>(&keep_)})
+      for (int f : *set) {
+        auto it = columns_.find(f);
+        if (it != columns_.end()) kept.emplace(f, std::move(it->second));
+      }
     columns_ = std::move(kept);
   }
+  solved_new_ += static_cast<long>(todo.size());
   std::sort(stale.begin(), stale.end());
   for (size_t k = 0; k < stale.size() && k < static_cast<size_t>(kRefresh); ++k) todo.push_back(stale[k].second);
   if (todo.empty()) return;

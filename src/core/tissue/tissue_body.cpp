@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <iterator>
 
 #include "needle_sim/core/error.hpp"
 #include "needle_sim/core/stopwatch.hpp"
@@ -166,7 +167,7 @@ StepStats TissueBody::freeMotion(double h) {
   // swap they are all current, instead of kRefresh a step recomputed here (on the DBS mesh
   // 8 solves, 2.4 ms a step, for ten steps after each swap).
   const auto l = solver_->solve(mass_free_, 1 + h * alpha, h * beta + h * h, b, dv_free_, 0,
-                                [this] { return columns_.dofs(); });
+                                [this] { return refreshColumnDofs(); });
   if (l.async_swapped) adoptRefreshColumns();
   free_guess2_ = free_guess_;
   free_guess_ = dv_free_;
@@ -182,35 +183,15 @@ void TissueBody::adoptRefreshColumns() {
   if (solver_->takeRefreshColumns(dofs, X, version)) columns_.adopt(dofs, X, version);
 }
 
-bool TissueBody::solveDual(const Eigen::MatrixXd& G, Eigen::MatrixXd& Z, int& iterations, int max_iterations) const {
-  const int nf = dofs_.numFree();
-  Eigen::MatrixXd Gf(nf, G.cols()), Zf;
-  VecX col;
-  for (Eigen::Index j = 0; j < G.cols(); ++j) {
-    dofs_.gather(G.col(j), col);
-    Gf.col(j) = col;
-  }
-  // Z as it comes (the previous pass's duals on this mesh) is the initial guess.
-  if (Z.rows() == G.rows() && Z.cols() == G.cols()) {
-    Zf.resize(nf, G.cols());
-    for (Eigen::Index j = 0; j < G.cols(); ++j) {
-      dofs_.gather(Z.col(j), col);
-      Zf.col(j) = col;
-    }
-  }
-  bool converged = false;
-  // The tangent at the current rotations (the model's, as the last step left them), to a
-  // relative residual of 1e-6: the dual enters an estimate whose effectivity is within a
-  // factor of 2 (doc/verification.md, "Error on target motion"), far above what the residual leaves.
-  const LinearSolveStats st = solver_->solveWithFactor(mass_free_, 0.0, 1.0, Gf, Zf, 1e-6, max_iterations, converged);
-  iterations = st.iterations;
-  Z.resize(G.rows(), G.cols());
-  VecX full;
-  for (Eigen::Index j = 0; j < G.cols(); ++j) {
-    dofs_.scatter(Zf.col(j), full);
-    Z.col(j) = full;
-  }
-  return converged;
+StiffnessFactor& TissueBody::dualFactor() const {
+  if (!dual_factor_) dual_factor_ = std::make_unique<StiffnessFactor>(*model_, dofs_, solver_->assembler(), settings_.linear.ordering);
+  return *dual_factor_;
+}
+
+StiffnessFactor& TissueBody::backgroundStiffnessFactor() const {
+  if (!background_dual_factor_)
+    background_dual_factor_ = std::make_unique<StiffnessFactor>(*model_, dofs_, solver_->assembler(), settings_.linear.ordering);
+  return *background_dual_factor_;
 }
 
 double TissueBody::kineticEnergy() const { return 0.5 * (mass_.array() * v_.array().square()).sum(); }
@@ -219,6 +200,11 @@ void TissueBody::prepareForSteps(double h, const std::vector<int>& elements) {
   model_->updateRotations(x_);
   solver_->factorNow(mass_free_, 1 + h * settings_.rayleigh_mass, h * settings_.rayleigh_stiffness + h * h);
   step_h_ = h;
+  const std::vector<int> free = freeDofsOf(elements);
+  if (!free.empty()) columns_.prepare(free, solver_->factor(), solver_->factorVersion(), dofs_.numFree());
+}
+
+std::vector<int> TissueBody::freeDofsOf(const std::vector<int>& elements) const {
   std::vector<int> free;
   std::vector<char> seen(dofs_.numFree(), 0);
   for (int e : elements)
@@ -231,7 +217,18 @@ void TissueBody::prepareForSteps(double h, const std::vector<int>& elements) {
             free.push_back(x->free);
           }
       }
-  if (!free.empty()) columns_.prepare(free, solver_->factor(), solver_->factorVersion(), dofs_.numFree());
+  return free;
+}
+
+std::vector<int> TissueBody::refreshColumnDofs() {
+  std::vector<int> d = columns_.dofs();
+  if (!elements_ahead_ || !settings_.linear.columns_ahead) return d;
+  std::vector<int> ahead = freeDofsOf(elements_ahead_());
+  std::sort(ahead.begin(), ahead.end());
+  columns_.keep(ahead);
+  std::vector<int> all;
+  std::set_union(d.begin(), d.end(), ahead.begin(), ahead.end(), std::back_inserter(all));
+  return all;
 }
 
 void TissueBody::setState(const VecX& x, const VecX& v) {

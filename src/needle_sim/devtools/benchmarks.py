@@ -180,14 +180,14 @@ def target_error():
         with open(os.path.join(out, "b.json")) as f:
             j = json.load(f)
         g = j["target_error_ms"]
-        rows.append("| %d | %s | %d | %.3g / %.3g | %.1f %% | %.3g / %.3g | %d / %d |" % (
+        rows.append("| %d | %s | %d | %.3g / %.3g | %.1f %% | %.3g / %.3g |" % (
             rep + 1, ms3(j["step_ms"]), g["passes"], g["median"], g["max"], 100 * g["share"], g["copy_median"],
-            g["copy_max"], g["dual_iterations_median"], g["dual_iterations_max"]))
+            g["copy_max"]))
         if rep == 0:
             cmds.append(placeholder(cmd, "--json", "FILE"))
     head = ("| run | step ms median / p99.9 / max | estimates | estimate ms median / max | share of the run "
-            "(steps + estimates) | copy ms median / max | dual CG iterations median / max |\n"
-            "|---|---|---|---|---|---|---|\n")
+            "(steps + estimates) | copy ms median / max |\n"
+            "|---|---|---|---|---|---|\n")
     return head + "\n".join(rows) + "\n", cmds
 
 
