@@ -9,6 +9,8 @@
 //     stale factor costs most: nearly incompressible tissue.
 //   - The compliance columns ahead of the needles computed by the refreshes
 //     (solver.linear.columns_ahead).
+//   - Goal-oriented passes in the background (adaptivity.estimate_delay = rebuild_delay where
+//     the scene sets none).
 #include "needle_sim/scene/scene.hpp"
 
 namespace needle_sim {

@@ -15,6 +15,12 @@ void applyLiveLoop(Scene& scene, const LiveLoopOptions& o) {
   // thread when it meets them, made DBS steps of 7-12 ms (24 columns and 8 stale ones on
   // 5,295 DOFs); the refreshes compute them beforehand.
   scene.solver.linear.columns_ahead = true;
+  // Goal-oriented passes (a factorisation of K each: 25-60 ms on dbs_goal's 5,295 DOFs, steps
+  // of 30-140 ms on the stepping thread) run in the background, decided at the step their mesh
+  // change switches at, when the scene defers its mesh changes and sets no estimate_delay.
+  if (scene.adaptivity && scene.adaptivity->estimator == AdaptivitySettings::Estimator::Goal &&
+      scene.adaptivity->estimate_delay == 0 && scene.adaptivity->rebuild_delay > 0)
+    scene.adaptivity->estimate_delay = scene.adaptivity->rebuild_delay;
 }
 
 }  // namespace needle_sim
