@@ -4,7 +4,7 @@
 # the stepping thread beside background work (#18): the factor refreshed on a background
 # thread (test_verification's async trajectories, test_solver), mesh changes built in the
 # background and simulations copied while a build is pending (test_adaptivity,
-# test_prediction); then the ROS layer's threads (issue #39): test/tsan_ros builds src/ros and
+# test_prediction), goal-oriented passes in the background (test_goal_estimate); then the ROS layer's threads (issue #39): test/tsan_ros builds src/ros and
 # test/rostest/test_node_threads.cpp with -fsanitize=thread against this core, and runs the test
 # beside a roscore of its own. Exits non-zero on any failure or data-race report.
 #   bash scripts/tsan.sh                  # the async tests
@@ -17,7 +17,8 @@ TSAN_BUILD="${NEEDLE_SIM_TSAN_DIR:-$ROOT/build/tsan}"
 # it: CI's check of that configuration, under ThreadSanitizer.
 CC=clang CXX=clang++ configure_core "$TSAN_BUILD" -DCMAKE_BUILD_TYPE=RelWithDebInfo -DNEEDLE_SIM_TSAN=ON
 TESTS=(test_solver test_verification test_adaptivity test_prediction)
-cmake --build "$TSAN_BUILD" -j"$(getconf _NPROCESSORS_ONLN)" --target "${TESTS[@]}" needle_sim_tool tutorial_00_library >&2
+cmake --build "$TSAN_BUILD" -j"$(getconf _NPROCESSORS_ONLN)" --target "${TESTS[@]}" test_goal_estimate needle_sim_tool \
+  tutorial_00_library >&2
 cd "$TSAN_BUILD"
 # Uninstrumented libraries (OpenBLAS, CHOLMOD, libgomp) synchronise internally in ways TSan
 # cannot see: their frames are suppressed (test/tsan.supp); every report in our code fails.
@@ -25,6 +26,8 @@ export TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$ROOT/
 export OPENBLAS_NUM_THREADS=1 OMP_THREAD_LIMIT=1
 check_core_build "$TSAN_BUILD"
 ctest --output-on-failure -j1 -R "$(IFS='|'; echo "${TESTS[*]}")" "$@"
+# Of test_goal_estimate only the background passes (its static boxes take minutes under TSan).
+GTEST_FILTER='*Background*' ctest --output-on-failure -j1 -R test_goal_estimate "$@"
 
 # The ROS layer under ThreadSanitizer. Its generated messages and reconfigure header are the
 # regular build's (scripts/test.sh, CI's first phase, made them; made here if missing).
