@@ -8,7 +8,7 @@
 //   - Lagged rotations (solver.linear.rotation_drift, doc/method.md "Time integration") where a
 //     stale factor costs most: nearly incompressible tissue.
 //   - The compliance columns ahead of the needles computed by the refreshes
-//     (solver.linear.columns_ahead).
+//     (solver.linear.columns_ahead) where the rotations lag.
 //   - Goal-oriented passes in the background (adaptivity.estimate_delay = rebuild_delay where
 //     the scene sets none).
 #include "needle_sim/scene/scene.hpp"

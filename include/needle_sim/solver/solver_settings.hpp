@@ -53,7 +53,7 @@ struct SolverSettings {
             .real("linear.rotation_drift", [](SolverSettings& s) -> double& { return s.linear.rotation_drift; }, "rad",
                   Range::closed(0, 0.5), "dynamic steps: the tissue's stiffness and forces take the element rotations of the factor in use, refreshed (in the background with `linear.async`) once an element's rotation has turned more than this from them; every solve is then the factor's own matrix (one CG iteration), where a nearly incompressible tissue's stale factor takes many. 0: the rotations of every step ([method.md](method.md#time-integration))")
             .flag("linear.columns_ahead", [](SolverSettings& s) -> bool& { return s.linear.columns_ahead; },
-                  "dynamic steps with needles: a background factor refresh also computes the compliance columns of the elements the needles' next constraint points will lie in (the next shaft point, the tip ahead), so that the step meeting them does not solve for them; the live loop turns it on ([method.md](method.md#constraint-solve))");
+                  "dynamic steps with needles: a background factor refresh also computes the compliance columns of the elements the needles' next constraint points will lie in (the next shaft point, the tip ahead), so that the step meeting them does not solve for them; the live loop turns it on with lagged rotations ([method.md](method.md#constraint-solve))");
     return p;
   }
 };
